@@ -1,0 +1,36 @@
+# dynslam: `make demo` and `make test` do all the set-up on a fresh machine.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+DYNSLAM := $(VENV)/bin/dynslam
+TESTENV := MPLBACKEND=Agg ORT_DISABLE_TELEMETRY=1 PYTHONHASHSEED=0
+
+.PHONY: install test demo tables bench lint clean
+
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q -e ".[test]"
+	touch $@
+
+# The test suite; HOME goes to a temp folder because evo and onnxruntime write there on import.
+test: install
+	@tmp=$$(mktemp -d); HOME=$$tmp $(TESTENV) $(PY) -m pytest -q $(PYTEST_ARGS); rc=$$?; rm -rf $$tmp; exit $$rc
+
+# The main job on the built-in synthetic default scene.
+demo: install
+	$(DYNSLAM) demo
+
+tables: install
+	$(DYNSLAM) tables
+
+bench: install
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+lint: install
+	$(PY) -m pip install -q ruff
+	$(VENV)/bin/ruff check dynslam_cli tests benchmarks
+
+clean:
+	rm -rf $(VENV) .pytest_cache

@@ -1,0 +1,1 @@
+"""Data layer: frames, sequence readers (TUM, Bonn, synthetic), name resolution, download."""

@@ -1,0 +1,1 @@
+"""Evaluation: ATE, mesh accuracy/completion, motion-mask IoU, tables and plots."""

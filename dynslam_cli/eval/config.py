@@ -1,0 +1,15 @@
+"""Configuration of evaluation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dynslam_cli.config.fields import opt
+
+
+@dataclass
+class EvalConfig:
+    max_time_diff: float = opt(0.02, "Maximum timestamp difference (s) when associating estimate and ground truth.")
+    align: str = opt("se3", "Trajectory alignment: se3 (Umeyama, no scale), sim3, origin, none.")
+    mesh_samples: int = opt(200000, "Points sampled on each mesh for accuracy/completion.")
+    completion_threshold: float = opt(0.05, "Distance (m) under which a reference point counts as completed.")

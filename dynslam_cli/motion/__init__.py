@@ -1,0 +1,1 @@
+"""Learning to forget: instance segmentation, embeddings, the continual motion classifier."""

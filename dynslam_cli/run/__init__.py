@@ -1,0 +1,1 @@
+"""Running a sequence end to end: the run folder, checkpoints, resume."""

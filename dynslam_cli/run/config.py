@@ -1,0 +1,20 @@
+"""Configuration of a run."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dynslam_cli.config.fields import opt
+
+
+@dataclass
+class RunConfig:
+    mode: str = opt("dynamic", "dynamic (learn to forget) or static (the Co-SLAM baseline).")
+    device: str = opt("auto", "auto (cuda when available), cpu or cuda.")
+    seed: int = opt(0, "Random seed (torch, numpy, ray sampling).")
+    threads: int = opt(0, "Torch/numba threads; 0 = all cores.")
+    checkpoint_every: int = opt(50, "Write a resumable checkpoint every N frames; 0 = never.")
+    save_masks: bool = opt(False, "Save per-frame motion masks as PNG.")
+    mesh: bool = opt(True, "Extract the mesh at the end.")
+    mesh_resolution: float = opt(0.02, "Marching-cubes voxel size (m).")
+    results_root: str = opt("results/runs", "Folder under which run folders are created.")

@@ -1,0 +1,1 @@
+"""Tracking and mapping (bundle adjustment) against the neural map."""

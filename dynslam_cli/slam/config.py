@@ -1,0 +1,29 @@
+"""Configuration of tracking and mapping (Co-SLAM TUM settings, see BRIEF.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dynslam_cli.config.fields import opt
+
+
+@dataclass
+class TrackingConfig:
+    iters: int = opt(10, "Adam iterations per frame (20 for harder sequences).")
+    n_rays: int = opt(1024, "Rays sampled per tracking iteration (|H_t|).")
+    lr: float = opt(0.01, "Adam learning rate of the 6-DoF pose increment.")
+    ignore_border: int = opt(20, "Pixels ignored at the image border when sampling rays.")
+    const_velocity: bool = opt(True, "Initialise each pose with the constant-velocity model.")
+    max_jump: float = opt(0.3, "A tracked pose moving more than this (m) from its initial guess is divergence.")
+
+
+@dataclass
+class MappingConfig:
+    every: int = opt(5, "Run bundle adjustment every N frames.")
+    keyframe_every: int = opt(5, "Insert a keyframe every N frames.")
+    keyframe_ray_fraction: float = opt(0.05, "Fraction of a keyframe's pixels stored for replay.")
+    iters: int = opt(20, "Bundle adjustment iterations.")
+    n_rays: int = opt(2048, "Rays per bundle adjustment iteration (|H_b|).")
+    lr_map: float = opt(0.01, "Learning rate of the grid and decoders.")
+    lr_pose: float = opt(0.001, "Learning rate of keyframe poses.")
+    first_iters: int = opt(1000, "Mapping iterations on the first frame.")

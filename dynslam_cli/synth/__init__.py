@@ -1,0 +1,1 @@
+"""Synthetic dynamic RGB-D scenes with per-pixel ground truth (motion masks, instance ids, static mesh)."""

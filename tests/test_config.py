@@ -1,0 +1,81 @@
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dynslam_cli.config import Config, apply_overrides, config_to_yaml, load_config
+from dynslam_cli.config.loader import config_from_file
+from dynslam_cli.errors import DynslamError
+
+
+def test_defaults_and_base_yaml_load():
+    cfg = load_config()
+    assert isinstance(cfg, Config)
+    assert cfg.tracking.n_rays == 1024
+    assert cfg.mapping.n_rays == 2048
+    assert cfg.map.truncation == pytest.approx(0.10)
+
+
+def test_dataset_and_sequence_layers():
+    fr3 = load_config("tum", "fr3_walking_xyz")
+    assert fr3.data.intrinsics == [535.4, 539.2, 320.1, 247.6]
+    fr1 = load_config("tum", "fr1_desk")
+    assert fr1.data.intrinsics[0] == pytest.approx(517.3)
+    assert fr1.data.distortion[0] == pytest.approx(0.2624)
+    bonn = load_config("bonn", "crowd")
+    assert bonn.data.intrinsics[0] == pytest.approx(542.822841)
+
+
+def test_overrides_types_and_precedence(tmp_path: Path):
+    f = tmp_path / "c.yaml"
+    f.write_text("tracking:\n  iters: 20\nmap:\n  bounds: [[0,0,0],[1,1,1]]\n")
+    cfg = load_config("tum", "fr3_walking_xyz", f, ["tracking.iters=7", "run.mode=static", "map.truncation=1"])
+    assert cfg.tracking.iters == 7
+    assert cfg.run.mode == "static"
+    assert cfg.map.truncation == 1.0 and isinstance(cfg.map.truncation, float)
+    assert cfg.map.bounds == [[0, 0, 0], [1, 1, 1]]
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("map.nonsense=1", "unknown config key 'map.nonsense'"),
+    ("nosection.x=1", "unknown config key 'nosection'"),
+    ("tracking.iters=abc", "must be an integer"),
+    ("run.save_masks=3", "must be true/false"),
+    ("tracking", "section.key=value"),
+])
+def test_bad_overrides(override, fragment):
+    with pytest.raises(DynslamError, match=fragment.replace("(", r"\(").replace(".", r"\.")):
+        apply_overrides(Config(), [override])
+
+
+def test_unknown_key_in_file_names_file_and_valid_keys(tmp_path: Path):
+    f = tmp_path / "bad.yaml"
+    f.write_text("mapping:\n  iterz: 3\n")
+    with pytest.raises(DynslamError) as info:
+        load_config(config_file=f)
+    msg = str(info.value)
+    assert "mapping.iterz" in msg and str(f) in msg and "iters" in msg
+
+
+def test_yaml_round_trip(tmp_path: Path):
+    cfg = load_config("bonn", "crowd", overrides=["tracking.iters=13"])
+    text = config_to_yaml(cfg)
+    assert "# Adam iterations per frame" in text
+    p = tmp_path / "config.yaml"
+    p.write_text(text)
+    assert yaml.safe_load(text)["tracking"]["iters"] == 13
+    assert config_from_file(p) == cfg
+
+
+def test_cli_config_show_and_error():
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    r = CliRunner().invoke(app, ["config", "show", "--seq", "bonn/crowd", "--plain"])
+    assert r.exit_code == 0, r.output
+    assert yaml.safe_load(r.output)["data"]["intrinsics"][0] == pytest.approx(542.822841)
+    r = CliRunner().invoke(app, ["config", "show", "--set", "map.bogus=1"])
+    assert r.exit_code == 2
+    assert "unknown config key 'map.bogus'" in r.output
+    assert "Traceback" not in r.output
