@@ -93,3 +93,37 @@ def identify(seq: str) -> SequenceId:
     if "tum" in low or "freiburg" in low:
         return SequenceId("tum", folder, path)
     return SequenceId("tum", folder, path)  # the TUM layout is the generic one
+
+
+def known_names(dataset: str) -> list[str]:
+    """The short names of a dataset's table (empty for synth: presets live in the renderer)."""
+    table = {"tum": TUM_SEQUENCES, "bonn": BONN_SEQUENCES}.get(dataset, {})
+    return sorted(table)
+
+
+def folder_name(dataset: str, name: str) -> str | None:
+    """The dataset's own folder name of a short name (``fr3_walking_xyz`` →
+    ``rgbd_dataset_freiburg3_walking_xyz``; ``crowd`` → ``rgbd_bonn_crowd``); names outside the
+    tables that follow the dataset's pattern (``fr2_desk``) map by the pattern; else None."""
+    if dataset == "tum":
+        if name in TUM_SEQUENCES:
+            return TUM_SEQUENCES[name]
+        m = re.fullmatch(r"fr(\d)_([A-Za-z0-9_]+)", name)
+        if m:
+            return f"rgbd_dataset_freiburg{m.group(1)}_{m.group(2)}"
+        if re.fullmatch(r"rgbd_dataset_freiburg\d_[A-Za-z0-9_]+", name):
+            return name
+        return None
+    if dataset == "bonn":
+        if name in BONN_SEQUENCES:
+            return BONN_SEQUENCES[name]
+        if name.startswith("rgbd_bonn_") and name[len("rgbd_bonn_"):] in BONN_SEQUENCES:
+            return name
+        return None
+    return None
+
+
+def is_known(dataset: str, name: str) -> bool:
+    """Whether ``name`` is in the dataset's table (patterns outside it are 'possible', not known)."""
+    folder = folder_name(dataset, name)
+    return folder is not None and folder in {"tum": TUM_SEQUENCES, "bonn": BONN_SEQUENCES}.get(dataset, {}).values()
