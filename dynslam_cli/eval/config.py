@@ -13,3 +13,6 @@ class EvalConfig:
     align: str = opt("se3", "Trajectory alignment: se3 (Umeyama, no scale), sim3, origin, none.")
     mesh_samples: int = opt(200000, "Points sampled on each mesh for accuracy/completion.")
     completion_threshold: float = opt(0.05, "Distance (m) under which a reference point counts as completed.")
+    seed: int = opt(0, "Seed of the point sampling on meshes (results are repeatable).")
+    cull_views: int = opt(200, "Camera poses (evenly spread) whose frusta cull the reference for completion.")
+    cull_max_depth: float = opt(5.0, "Frustum depth (m) when culling the reference to the observed space.")

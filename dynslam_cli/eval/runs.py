@@ -1,0 +1,173 @@
+"""Reading a run folder (see DEVELOPING.md, "Run folder") for evaluation.
+
+Only result files are read here: ``run.json``, ``config.yaml``, ``traj_est.txt`` and the files
+the evaluators wrote.  Every problem is a one-line :class:`DynslamError` naming the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from dynslam_cli.errors import DynslamError
+
+# Intrinsics [fx, fy, cx, cy] of the datasets when a run's config does not record them.
+DATASET_INTRINSICS = {
+    "bonn": [542.822841, 542.576870, 315.593520, 237.756098],
+    "fr1": [517.3, 516.5, 318.6, 255.3],
+    "fr2": [520.9, 521.0, 325.1, 249.7],
+    "fr3": [535.4, 539.2, 320.1, 247.6],
+}
+
+
+def require_run_dir(run_dir: str | Path) -> Path:
+    p = Path(run_dir)
+    if not p.is_dir():
+        raise DynslamError(f"run folder not found: {p}")
+    return p
+
+
+def read_json(path: Path, what: str = "JSON file") -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise DynslamError(f"{what} not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DynslamError(f"corrupt {what} {path}: {exc}") from None
+
+
+def read_run_json(run_dir: Path, required: bool = False) -> dict:
+    """``run.json`` of a run folder as a dict ({} when absent and not ``required``)."""
+    path = Path(run_dir) / "run.json"
+    if not path.is_file():
+        if required:
+            raise DynslamError(f"run.json not found in run folder {run_dir}")
+        return {}
+    data = read_json(path, "run.json")
+    if not isinstance(data, dict):
+        raise DynslamError(f"corrupt run.json {path}: expected a JSON object")
+    return data
+
+
+def read_run_config(run_dir: Path) -> dict:
+    """The run's resolved ``config.yaml`` as a plain dict ({} when absent)."""
+    import yaml
+
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise DynslamError(f"corrupt config.yaml {path}: {getattr(exc, 'problem', exc)}") from None
+    return data if isinstance(data, dict) else {}
+
+
+def eval_config_for(run_dir: Optional[Path]):
+    """EvalConfig defaults overlaid with the ``eval`` section of the run's config.yaml."""
+    import dynslam_cli.config  # noqa: F401 - import the config package first (avoids a circular import)
+    from dynslam_cli.eval.config import EvalConfig
+
+    cfg = EvalConfig()
+    section = read_run_config(run_dir).get("eval", {}) if run_dir is not None else {}
+    if isinstance(section, dict):
+        names = {f.name for f in dataclasses.fields(EvalConfig)}
+        for key, value in section.items():
+            if key in names and value is not None:
+                setattr(cfg, key, type(getattr(cfg, key))(value))
+    return cfg
+
+
+def _resolve(path_text: str, run_dir: Path) -> Path:
+    p = Path(path_text).expanduser()
+    if p.is_absolute():
+        return p
+    for base in (Path.cwd(), run_dir):
+        if (base / p).exists():
+            return base / p
+    return p
+
+
+def sequence_info(run_dir: Path, meta: Optional[dict] = None) -> dict:
+    meta = read_run_json(run_dir) if meta is None else meta
+    seq = meta.get("sequence") or {}
+    return seq if isinstance(seq, dict) else {}
+
+
+def groundtruth_path(run_dir: Path, meta: Optional[dict] = None) -> Optional[Path]:
+    """The ground-truth file recorded in run.json (sequence.groundtruth), else the sequence's."""
+    seq = sequence_info(run_dir, meta)
+    if seq.get("groundtruth"):
+        return _resolve(str(seq["groundtruth"]), run_dir)
+    if seq.get("path") and (_resolve(str(seq["path"]), run_dir) / "groundtruth.txt").is_file():
+        return _resolve(str(seq["path"]), run_dir) / "groundtruth.txt"
+    return None
+
+
+def sequence_path(run_dir: Path, meta: Optional[dict] = None) -> Optional[Path]:
+    seq = sequence_info(run_dir, meta)
+    return _resolve(str(seq["path"]), run_dir) if seq.get("path") else None
+
+
+def dataset_of(run_dir: Path, meta: Optional[dict] = None) -> str:
+    seq = sequence_info(run_dir, meta)
+    if seq.get("dataset"):
+        return str(seq["dataset"])
+    sp = sequence_path(run_dir, meta)
+    if sp is not None and (sp / "synth.json").is_file():
+        return "synth"
+    return ""
+
+
+def camera_model(run_dir: Path, meta: Optional[dict] = None) -> tuple[list[float], int, int]:
+    """``([fx, fy, cx, cy], width, height)`` of the run's camera.
+
+    Looked up, in order: run.json ``sequence.intrinsics`` (and ``width``/``height``), the run's
+    config.yaml ``data.intrinsics``, the scene's ``synth.json`` (synthetic runs), the dataset's
+    published values (Bonn, TUM fr1/fr2/fr3).  The image size defaults to 640×480.
+    """
+    meta = read_run_json(run_dir) if meta is None else meta
+    seq = sequence_info(run_dir, meta)
+    width = int(seq.get("width") or 640)
+    height = int(seq.get("height") or 480)
+    intr = seq.get("intrinsics")
+    if not intr:
+        intr = (read_run_config(run_dir).get("data") or {}).get("intrinsics")
+    sp = sequence_path(run_dir, meta)
+    if sp is not None and (sp / "synth.json").is_file():
+        sj = read_json(sp / "synth.json", "synth.json")
+        if not intr:
+            intr = sj.get("intrinsics")
+        size = sj.get("size")
+        if isinstance(size, (list, tuple)) and len(size) == 2:
+            width, height = int(size[0]), int(size[1])
+        width = int(sj.get("width", width))
+        height = int(sj.get("height", height))
+    if not intr:
+        ds = dataset_of(run_dir, meta)
+        name = str(seq.get("name", ""))
+        key = "bonn" if ds == "bonn" else name[:3] if ds == "tum" else ""
+        intr = DATASET_INTRINSICS.get(key)
+    if not intr or len(intr) != 4:
+        raise DynslamError(f"camera intrinsics of run {run_dir} unknown: not in run.json, config.yaml "
+                           "data.intrinsics, synth.json or the dataset table")
+    return [float(v) for v in intr], width, height
+
+
+def is_finished(run_dir: Path) -> bool:
+    """A run whose run.json says completed and whose ate.json exists."""
+    try:
+        meta = read_run_json(run_dir)
+    except DynslamError:
+        return False
+    return meta.get("status") == "completed" and (Path(run_dir) / "ate.json").is_file()
+
+
+def finite_or_error(arr: np.ndarray, what: str) -> np.ndarray:
+    if not np.isfinite(arr).all():
+        raise DynslamError(f"{what} contains NaN or infinite values")
+    return arr
