@@ -9,13 +9,51 @@ from dynslam_cli.config.fields import opt
 
 @dataclass
 class MotionConfig:
-    segmenter: str = opt("geometric", "Instance segmenter: geometric (weightless RGB-D) or yolo-seg (an ONNX file in `segmenter_model`).")
+    # --- segmentation
+    segmenter: str = opt("geometric", "Instance segmenter: geometric (weightless RGB-D) or yolo-seg (an ONNX file in "
+            "`segmenter_model`; fastsam = the same decoder).")
     segmenter_model: str = opt("", "ONNX file of a YOLOv8-seg-format model (FastSAM or YOLOv8-seg export).")
+    segmenter_conf: float = opt(0.25, "yolo-seg: confidence threshold (FastSAM: 0.4 in its paper).")
+    segmenter_iou: float = opt(0.7, "yolo-seg: NMS IoU threshold (class-aware for multi-class models).")
+    segmenter_imgsz: int = opt(640, "yolo-seg: input size when the ONNX model has a dynamic input shape.")
+    prune_ratio: float = opt(0.9, "T_R: drop segment R1 when area(R1 ∩ R2) > T_R · area(R1) for another segment R2.")
+    min_instance_area: int = opt(64, "Instances with fewer pixels (full resolution) after overlap resolution are dropped to "
+            "background.")
+    geometric_width: int = opt(160, "geometric: working width in pixels (ids are upsampled to the frame).")
+    geometric_depth_jump: float = opt(0.04, "geometric: relative depth step |Δd|/d between neighbours that separates segments.")
+    geometric_normal_angle: float = opt(30.0, "geometric: normal change (degrees) between pixels 3 px apart that separates "
+            "segments.")
+    geometric_color_jump: float = opt(40.0, "geometric: Lab colour difference that separates segments where depth also steps (> "
+            "a quarter of the jump).")
+    geometric_min_area: float = opt(0.004, "geometric: smallest segment as a fraction of the image.")
+    # --- encoding
     encoder: str = opt("effnet-lite0", "Instance encoder: effnet-lite0, onnx, clip, dino, blip, color-hist.")
     encoder_model: str = opt("", "ONNX file of the encoder (for onnx/clip/dino/blip).")
-    depth_threshold: float = opt(0.3, "t_d (m): depth difference counted as inconsistent.")
-    pixel_fraction: float = opt(0.05, "t_p: fraction of inconsistent pixels that marks an instance as moving.")
+    encoder_input_size: int = opt(0, "Encoder input side in pixels; 0 = the preset's (224; blip 224 or 364 read from the model).")
+    encoder_mean: list = opt([], "Per-channel mean on the 0-1 scale; empty = the preset's (onnx: ImageNet).")
+    encoder_std: list = opt([], "Per-channel std on the 0-1 scale; empty = the preset's (onnx: ImageNet).")
+    encoder_output: str = opt("", "Output name or index of the ONNX encoder; empty = the preset's (first output).")
+    encoder_pooling: str = opt("auto", "Pooling of the encoder output: auto (B×D as is, tokens → mean, map → mean), mean, cls, "
+            "max.")
+    crop_margin: float = opt(0.1, "Margin added around each instance's bounding box, as a fraction of its size.")
+    crop_background: str = opt("grey", "Pixels outside the instance in its crop: grey (the normalisation mean) or zero.")
+    encoder_batch: int = opt(32, "Crops per encoder batch.")
+    # --- classifier and continual learning
+    hidden: int = opt(128, "Hidden units of the 2-layer MLP classifier g.")
+    lr: float = opt(0.005, "Adam learning rate of classifier updates.")
+    update_steps: int = opt(50, "Maximum Adam steps per classifier update.")
+    min_update_steps: int = opt(5, "Minimum Adam steps per classifier update (then stop once contradictions are fixed).")
     replay: bool = opt(True, "Replay buffer of instances seen dynamic.")
     replay_samples: int = opt(5, "n_c: instances drawn from the replay buffer per update.")
+    replay_capacity: int = opt(1000, "Replay buffer size (reservoir sampling beyond it).")
     prior: str = opt("", "Prior classifier file (`dynslam prior fit`); empty = none. OR rule.")
     centre_feature: bool = opt(False, "Concatenate the instance's 3-D centre to its embedding.")
+    centre_scale: float = opt(1.0, "Multiplier on the 3-D centre (metres) when concatenated.")
+    # --- inconsistency check
+    depth_threshold: float = opt(0.3, "t_d (m): depth difference counted as inconsistent.")
+    pixel_fraction: float = opt(0.05, "t_p: fraction of inconsistent pixels that marks an instance as moving.")
+    bidirectional: bool = opt(True, "Also segment the rendered view and flag segments seen behind the map (objects that left).")
+    check_width: int = opt(160, "Width at which the check runs (rendered maps of any size are resized to it).")
+    min_check_pixels: int = opt(12, "Instances with fewer valid pixels at check resolution are not judged.")
+    seed: int = opt(0, "Seed of classifier initialisation and replay sampling.")
+    threads: int = opt(0, "onnxruntime intra-op threads; 0 = its default.")

@@ -1,0 +1,236 @@
+"""The motion module the SLAM loop calls: segment + encode + classify each frame, check it against
+the map after tracking, update the classifier on contradiction (with replay), and re-classify the
+stored instances of the keyframes so the map forgets what moved."""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+import torch
+
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.motion.check import check_size, inconsistency_check
+from dynslam_cli.motion.classifier import MotionClassifier, ReplayBuffer, load_prior, update_with_replay
+from dynslam_cli.motion.encode_base import make_encoder
+from dynslam_cli.motion.segment_base import make_segmenter
+from dynslam_cli.motion.segment_geometric import GeometricSegmenter
+from dynslam_cli.motion.types import FrameInstances, UpdateRecord
+
+
+def intrinsics_tuple(intrinsics) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) from an object with fx/fy/cx/cy, a 3×3 K or a 4-sequence."""
+    if intrinsics is None:
+        raise DynslamError("motion module needs camera intrinsics")
+    if all(hasattr(intrinsics, a) for a in ("fx", "fy", "cx", "cy")):
+        return float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx), float(intrinsics.cy)
+    a = np.asarray(intrinsics, np.float64)
+    if a.shape == (3, 3):
+        return float(a[0, 0]), float(a[1, 1]), float(a[0, 2]), float(a[1, 2])
+    if a.size >= 4:
+        a = a.ravel()
+        return float(a[0]), float(a[1]), float(a[2]), float(a[3])
+    raise DynslamError(f"cannot read intrinsics from {intrinsics!r}")
+
+
+def instance_centres(depth: np.ndarray, ids: np.ndarray, k: int, intr: tuple, pose_c2w: np.ndarray,
+                     step: int = 2) -> np.ndarray:
+    """(k, 3) world-frame mean of the back-projected valid pixels of each instance (NaN if none)."""
+    fx, fy, cx, cy = intr
+    d = depth[::step, ::step]
+    im = ids[::step, ::step]
+    vs, us = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
+    m = (d > 0) & (im > 0) & np.isfinite(d)
+    z = d[m].astype(np.float64)
+    pts = np.stack([(us[m] - cx) / fx * z, (vs[m] - cy) / fy * z, z], 1)
+    lab = im[m] - 1
+    cnt = np.bincount(lab, minlength=k)[:k].astype(np.float64)
+    c = np.stack([np.bincount(lab, pts[:, j], minlength=k)[:k] for j in range(3)], 1) if k else np.zeros((0, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = c / cnt[:, None]
+    T = np.asarray(pose_c2w, np.float64)
+    return (c @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+class MotionModule:
+    def __init__(self, cfg, intrinsics, device: torch.device):
+        self.cfg = cfg
+        self.m = cfg.motion if hasattr(cfg, "motion") else cfg
+        self.intr = intrinsics_tuple(intrinsics)
+        self.device = torch.device(device) if not isinstance(device, torch.device) else device
+        m = self.m
+        self.segmenter = make_segmenter(m, intrinsics)
+        self.rendered_segmenter = GeometricSegmenter.from_config(m, intrinsics)
+        self.rendered_segmenter.min_instance_area = 4
+        self.encoder = make_encoder(m)
+        self.in_dim = int(self.encoder.dim) + (3 if m.centre_feature else 0)
+        self.classifier = MotionClassifier(self.in_dim, m.hidden, m.lr, m.update_steps, m.min_update_steps,
+                                           m.seed, self.device)
+        self.replay = ReplayBuffer(self.in_dim, m.replay_capacity, m.seed)
+        self.prior: Optional[MotionClassifier] = None
+        if m.prior:
+            self.prior = load_prior(m.prior, self.encoder.name, int(self.encoder.dim), self.device)
+        self.keyframes: dict[int, dict] = {}
+        self.updates = 0
+
+    # --- features
+    def _features(self, emb: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        if not self.m.centre_feature:
+            return emb.astype(np.float32)
+        c = np.nan_to_num(centres.astype(np.float32)) * self.m.centre_scale
+        return np.concatenate([emb.astype(np.float32), c], 1)
+
+    def _classify(self, feats: np.ndarray, emb: np.ndarray) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+        p = self.classifier.probs(feats)
+        pp = self.prior.probs(emb) if self.prior is not None and len(emb) else None
+        dyn = p > 0.5
+        final = p
+        if pp is not None:
+            dyn = dyn | (pp > 0.5)
+            final = np.maximum(p, pp)
+        return dyn, final.astype(np.float32), pp
+
+    @staticmethod
+    def _static_mask(ids: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        lut = np.ones(len(dynamic) + 1, bool)
+        lut[1:] = ~dynamic
+        return lut[ids]
+
+    # --- per frame
+    def observe(self, frame, pose_c2w_guess: np.ndarray) -> FrameInstances:
+        t0 = time.perf_counter()
+        rgb, depth = frame.rgb, frame.depth
+        seg = self.segmenter.segment(rgb, depth)
+        t1 = time.perf_counter()
+        k = seg.count
+        emb = self.encoder.encode(rgb, seg.ids) if k else np.zeros((0, self.encoder.dim), np.float32)
+        t2 = time.perf_counter()
+        centres = instance_centres(depth, seg.ids, k, self.intr, pose_c2w_guess)
+        feats = self._features(emb, centres)
+        dyn, probs, pp = self._classify(feats, emb)
+        t3 = time.perf_counter()
+        inst = FrameInstances(
+            frame_index=int(getattr(frame, "index", -1)), ids=seg.ids, embeddings=emb, centres=centres,
+            dynamic=dyn, probs=probs, static_mask=self._static_mask(seg.ids, dyn), class_ids=seg.class_ids,
+            prior_probs=pp,
+            timings={"segment": (t1 - t0) * 1e3, "encode": (t2 - t1) * 1e3, "classify": (t3 - t2) * 1e3},
+        )
+        inst._feats = feats  # type: ignore[attr-defined]
+        return inst
+
+    def _feats_of(self, inst: FrameInstances) -> np.ndarray:
+        f = getattr(inst, "_feats", None)
+        return f if f is not None else self._features(inst.embeddings, inst.centres)
+
+    def check_and_update(self, frame, inst: FrameInstances, pose_c2w: np.ndarray, rendered_depth: np.ndarray,
+                         rendered_rgb: Optional[np.ndarray]) -> Optional[UpdateRecord]:
+        m = self.m
+        t0 = time.perf_counter()
+        H, W = frame.depth.shape[:2]
+        cw, ch = check_size(H, W, m.check_width)
+        fx, fy, cx, cy = self.intr  # the rendered view is segmented at check resolution
+        sx, sy = cw / W, ch / H
+        self.rendered_segmenter.intrinsics = (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
+        res = inconsistency_check(frame.depth, rendered_depth, inst.ids, m.depth_threshold, m.pixel_fraction,
+                                  rendered_rgb, self.rendered_segmenter if m.bidirectional else None,
+                                  m.check_width, m.min_check_pixels)
+        # centres at the tracked pose
+        inst.centres = instance_centres(frame.depth, inst.ids, inst.count, self.intr, pose_c2w)
+        feats = self._features(inst.embeddings, inst.centres)
+        inst._feats = feats  # type: ignore[attr-defined]
+        judged = res.judged if res.judged is not None else np.ones(inst.count, bool)
+        labels = res.observed_moving
+        pred = self.classifier.predict(feats)
+        # things that left: encode flagged segments of the rendered view (label dynamic)
+        extra = np.zeros((0, self.in_dim), np.float32)
+        if rendered_rgb is not None and res.rendered_ids is not None and len(res.rendered_flagged):
+            extra = self._rendered_features(res, rendered_rgb, rendered_depth, pose_c2w, frame.depth.shape)
+        t1 = time.perf_counter()
+        cur = np.nonzero(judged)[0]
+        contradicted = cur[labels[cur] != pred[cur]]
+        extra_contra = ~self.classifier.predict(extra) if len(extra) else np.zeros(0, bool)
+        movers = feats[cur[labels[cur]]]
+        record = None
+        if len(contradicted) or extra_contra.any():
+            x = np.concatenate([feats[cur], extra])
+            y = np.concatenate([labels[cur].astype(np.float32), np.ones(len(extra), np.float32)])
+            before, after, steps, n_rep = update_with_replay(self.classifier, self.replay if m.replay else None,
+                                                             x, y, m.replay_samples)
+            self.updates += 1
+            new_pred = self.classifier.predict(feats)
+            fixed = bool(np.all(new_pred[cur] == labels[cur])) and bool(np.all(self.classifier.predict(extra))) \
+                if len(extra) else bool(np.all(new_pred[cur] == labels[cur]))
+            record = UpdateRecord(
+                frame=inst.frame_index, instances=int(len(cur)), labels=[int(v) for v in labels[cur]],
+                predicted_before=[int(v) for v in pred[cur]],
+                contradicted=[int(i) for i in np.searchsorted(cur, contradicted)],
+                loss_before=before, loss_after=after, steps=int(steps), replay_used=int(n_rep),
+                replay_size=0, fixed=fixed, rendered_positives=int(len(extra)),
+            )
+        if m.replay:
+            self.replay.add(np.concatenate([movers, extra]))
+        if record is not None:
+            record.replay_size = len(self.replay)
+        dyn, probs, pp = self._classify(feats, inst.embeddings)
+        inst.dynamic, inst.probs, inst.prior_probs = dyn, probs, pp
+        inst.static_mask = self._static_mask(inst.ids, dyn)
+        inst.timings["check"] = (t1 - t0) * 1e3
+        inst.timings["update"] = (time.perf_counter() - t1) * 1e3
+        inst.check = res  # type: ignore[attr-defined]
+        return record
+
+    def _rendered_features(self, res, rendered_rgb, rendered_depth, pose_c2w, frame_hw) -> np.ndarray:
+        import cv2
+
+        rids = res.rendered_ids
+        h, w = rids.shape
+        lut = np.zeros(int(rids.max()) + 1, np.int32)
+        lut[res.rendered_flagged] = np.arange(1, len(res.rendered_flagged) + 1)
+        sub = lut[rids]
+        rgb = rendered_rgb
+        if rgb.dtype != np.uint8:
+            rgb = np.clip(rgb * (255.0 if rgb.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA) if rgb.shape[:2] != (h, w) else rgb
+        emb = self.encoder.encode(rgb, sub)
+        ren = cv2.resize(rendered_depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        fx, fy, cx, cy = self.intr
+        H, W = frame_hw
+        sx, sy = w / W, h / H
+        intr = (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
+        centres = instance_centres(ren, sub, len(emb), intr, pose_c2w, step=1)
+        return self._features(emb, centres)
+
+    # --- keyframes
+    def register_keyframe(self, kf_id: int, inst: FrameInstances) -> None:
+        feats = self._feats_of(inst)
+        pp = inst.prior_probs if inst.prior_probs is not None else np.zeros(inst.count, np.float32)
+        self.keyframes[int(kf_id)] = {"feats": feats.astype(np.float32).copy(), "prior": (pp > 0.5).copy()}
+
+    def keyframe_dynamic_ids(self, kf_id: int) -> np.ndarray:
+        kf = self.keyframes.get(int(kf_id))
+        if kf is None:
+            raise DynslamError(f"keyframe {kf_id} was not registered with the motion module")
+        dyn = self.classifier.predict(kf["feats"]) | kf["prior"] if len(kf["feats"]) else np.zeros(0, bool)
+        return (np.nonzero(dyn)[0] + 1).astype(np.int32)
+
+    # --- checkpoint
+    def state_dict(self) -> dict:
+        """Tensors and plain Python values only (loads with ``torch.load(..., weights_only=True)``)."""
+        return {"classifier": self.classifier.state_dict(), "replay": self.replay.state_dict(),
+                "keyframes": {k: {"feats": torch.from_numpy(v["feats"].copy()), "prior": torch.from_numpy(v["prior"].copy())}
+                              for k, v in self.keyframes.items()},
+                "updates": self.updates, "encoder": self.encoder.name, "in_dim": self.in_dim}
+
+    def load_state_dict(self, d: dict) -> None:
+        if d.get("encoder") != self.encoder.name or int(d.get("in_dim", -1)) != self.in_dim:
+            raise DynslamError(f"motion state was saved with encoder {d.get('encoder')} ({d.get('in_dim')}-d), "
+                               f"this run uses {self.encoder.name} ({self.in_dim}-d)")
+        self.classifier.load_state_dict(d["classifier"])
+        self.replay.load_state_dict(d["replay"])
+        def arr(x, dtype):
+            return np.asarray(x.numpy() if isinstance(x, torch.Tensor) else x, dtype)
+
+        self.keyframes = {int(k): {"feats": arr(v["feats"], np.float32), "prior": arr(v["prior"], bool)}
+                          for k, v in d["keyframes"].items()}
+        self.updates = int(d["updates"])

@@ -1,0 +1,153 @@
+"""Weightless RGB-D instance segmenter: depth discontinuities + surface normals + colour.
+
+Works at a reduced resolution (``geometric_width``, 160 px by default):
+
+1. depth is median-filtered, back-projected and normals are taken from 2-px central differences;
+2. a pixel is an *edge* when, towards a 4-neighbour, the depth steps by more than
+   ``depth_jump``·d, the normal turns by more than ``normal_angle``, or the Lab colour changes by more
+   than ``color_jump`` while the depth also steps by a quarter of the jump; invalid depth is an edge;
+3. edges are dilated by one pixel (so that thin bridges do not leak regions into each other), the
+   remaining pixels are split into 4-connected components, components under ``min_area`` are
+   discarded, and edge pixels within 6 px of a component join the nearest one;
+4. the id map is upsampled to the frame (nearest).
+
+Planar structures (walls, floor, table tops) become segments of their own, separated at creases;
+objects standing in front of them are separated by the depth step (and their contact line by the
+normal crease).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from dynslam_cli.motion.segment_base import relabel
+from dynslam_cli.motion.types import Segmentation
+
+
+def _intrinsics_tuple(intrinsics, w: int, h: int) -> tuple[float, float, float, float]:
+    if intrinsics is None:
+        f = 525.0 * w / 640.0
+        return f, f, (w - 1) / 2.0, (h - 1) / 2.0
+    from dynslam_cli.motion.module import intrinsics_tuple
+
+    return intrinsics_tuple(intrinsics)
+
+
+class GeometricSegmenter:
+    name = "geometric"
+
+    def __init__(self, intrinsics=None, width: int = 160, depth_jump: float = 0.04, normal_angle: float = 30.0,
+                 color_jump: float = 40.0, min_area: float = 0.004, min_instance_area: int = 64,
+                 fill_radius: int = 6):
+        self.intrinsics = intrinsics
+        self.width = int(width)
+        self.depth_jump = float(depth_jump)
+        self.cos_normal = float(np.cos(np.deg2rad(normal_angle)))
+        self.color_jump = float(color_jump)
+        self.min_area = float(min_area)
+        self.min_instance_area = int(min_instance_area)
+        self.fill_radius = int(fill_radius)
+        self.normal_offset = 3
+
+    @classmethod
+    def from_config(cls, mcfg, intrinsics=None) -> "GeometricSegmenter":
+        return cls(intrinsics, mcfg.geometric_width, mcfg.geometric_depth_jump, mcfg.geometric_normal_angle,
+                   mcfg.geometric_color_jump, mcfg.geometric_min_area, mcfg.min_instance_area)
+
+    def segment(self, rgb: Optional[np.ndarray], depth: np.ndarray) -> Segmentation:
+        H, W = depth.shape[:2]
+        ids_small = self.segment_small(rgb, depth)
+        ids = cv2.resize(ids_small.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST).astype(np.int32) \
+            if ids_small.shape != (H, W) else ids_small
+        ids, _ = relabel(ids, self.min_instance_area)
+        k = int(ids.max())
+        return Segmentation(ids, -np.ones(k, np.int64), np.ones(k, np.float32))
+
+    def segment_small(self, rgb: Optional[np.ndarray], depth: np.ndarray) -> np.ndarray:
+        """Id map at the working resolution."""
+        H, W = depth.shape[:2]
+        s = min(1.0, self.width / W)
+        w, h = max(8, int(round(W * s))), max(8, int(round(H * s)))
+        d = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST) if (w, h) != (W, H) \
+            else depth.astype(np.float32)
+        d = np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+        d = np.where(d > 0, d, 0).astype(np.float32)
+        dm = cv2.medianBlur(d, 5)
+        dm = np.where((d > 0) & (dm > 0), dm, 0).astype(np.float32)
+        valid = dm > 0
+        fx, fy, cx, cy = _intrinsics_tuple(self.intrinsics, W, H)
+        fx, fy, cx, cy = fx * w / W, fy * h / H, (cx + 0.5) * w / W - 0.5, (cy + 0.5) * h / H - 0.5
+        u = (np.arange(w, dtype=np.float32) - cx) / fx
+        v = (np.arange(h, dtype=np.float32) - cy) / fy
+        P = np.stack([dm * u[None, :], dm * v[:, None], dm], -1)
+        # normals from central differences over 2 px of the validity-weighted 5×5 box-filtered points
+        wv = cv2.blur(valid.astype(np.float32), (5, 5))
+        P = cv2.blur(P * valid[..., None], (5, 5)) / np.maximum(wv, 1e-6)[..., None]
+        du = np.zeros_like(P)
+        dv = np.zeros_like(P)
+        du[:, 1:-1] = P[:, 2:] - P[:, :-2]
+        dv[1:-1] = P[2:] - P[:-2]
+        n = np.cross(du, dv)
+        nn = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = n / np.maximum(nn, 1e-12)
+        nvalid = valid.copy()
+        nvalid[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
+        nvalid[1:-1] &= valid[2:] & valid[:-2]
+        nvalid[[0, -1], :] = False
+        nvalid[:, [0, -1]] = False
+        lab = None
+        if rgb is not None and self.color_jump > 0:
+            small = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != (W, H) else rgb
+            lab = cv2.cvtColor(np.ascontiguousarray(small), cv2.COLOR_RGB2LAB).astype(np.float32)
+            lab[..., 0] *= 100.0 / 255.0
+        edge = ~valid
+        o = self.normal_offset
+        for axis in (0, 1):
+            a = [slice(None), slice(None)]
+            b = [slice(None), slice(None)]
+            a[axis], b[axis] = slice(0, -1), slice(1, None)
+            a, b = tuple(a), tuple(b)
+            da, db = dm[a], dm[b]
+            dmin = np.minimum(da, db)
+            step = np.abs(da - db)
+            e = step > self.depth_jump * dmin
+            if lab is not None:
+                dc = np.linalg.norm(lab[a] - lab[b], axis=-1)
+                e |= (dc > self.color_jump) & (step > 0.25 * self.depth_jump * dmin)
+            e &= valid[a] & valid[b]
+            edge[a] |= e
+            edge[b] |= e
+        # normal creases: compare normals o px apart (the box filter spreads a crease over a few px);
+        # the box filter mixes surfaces across depth steps, so normals near those are not compared
+        smooth = nvalid & ~cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        for axis in (0, 1):
+            a = [slice(None), slice(None)]
+            b = [slice(None), slice(None)]
+            a[axis], b[axis] = slice(0, -o), slice(o, None)
+            a, b = tuple(a), tuple(b)
+            e = smooth[a] & smooth[b] & ((n[a] * n[b]).sum(-1) < self.cos_normal)
+            edge[a] |= e
+            edge[b] |= e
+        core = ~cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        n_lab, lab_map = cv2.connectedComponents(core.astype(np.uint8), connectivity=4)
+        counts = np.bincount(lab_map.ravel(), minlength=n_lab)
+        min_px = max(4, int(self.min_area * w * h))
+        keep = counts >= min_px
+        keep[0] = False
+        lut = np.where(keep, np.arange(n_lab), 0).astype(np.int32)
+        lab_map = lut[lab_map]
+        # edge pixels and dropped specks join the nearest kept component within fill_radius
+        unl = (lab_map == 0) & valid
+        if unl.any() and keep.any():
+            src = (lab_map == 0).astype(np.uint8)
+            dist, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+            zero_y, zero_x = np.nonzero(src == 0)
+            pix_lab = np.zeros(int(nearest.max()) + 1, np.int32)
+            # DIST_LABEL_PIXEL numbers zero pixels in row-major scan order starting at 1
+            pix_lab[1:len(zero_y) + 1] = lab_map[zero_y, zero_x]
+            fill = unl & (dist <= self.fill_radius)
+            lab_map[fill] = pix_lab[nearest[fill]]
+        return lab_map.astype(np.int32)

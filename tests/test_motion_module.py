@@ -1,0 +1,207 @@
+"""The inconsistency check (both directions) and the MotionModule end to end on toy frames."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from dynslam_cli.config import Config
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.motion.check import inconsistency_check
+from dynslam_cli.motion.segment_geometric import GeometricSegmenter
+from dynslam_cli.motion.toyscene import render_toy, toy_intrinsics
+
+torch = pytest.importorskip("torch")
+
+
+# ---------------------------------------------------------------- check
+def _planes(h=60, w=80):
+    ids = np.zeros((h, w), np.int32)
+    ids[10:40, 10:30] = 1
+    ids[10:40, 45:70] = 2
+    return ids
+
+
+def test_check_forward_flags_what_stands_in_front():
+    ids = _planes()
+    rendered = np.full(ids.shape, 2.5, np.float32)
+    observed = rendered.copy()
+    observed[ids == 1] = 2.0  # 0.5 m in front of the map
+    res = inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80)
+    assert res.forward.tolist() == [True, False] and res.observed_moving.tolist() == [True, False]
+    assert res.fractions[0] == pytest.approx(1.0) and res.fractions[1] == 0
+    assert not res.background_moving
+    # 0.2 m is under t_d
+    observed[ids == 1] = 2.3
+    assert not inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80).forward.any()
+    # t_p: 3% of the pixels in front is not enough, 10% is
+    observed = rendered.copy()
+    ys, xs = np.nonzero(ids == 2)
+    n = len(ys)
+    observed[ys[: int(0.03 * n)], xs[: int(0.03 * n)]] = 1.0
+    assert not inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80).forward[1]
+    observed[ys[: int(0.10 * n)], xs[: int(0.10 * n)]] = 1.0
+    assert inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80).forward[1]
+    # invalid depth is not evidence; a rendered map at another resolution is resized inside
+    observed[ids == 2] = 0
+    res = inconsistency_check(observed, rendered[::2, ::2], ids, 0.3, 0.05, width=80)
+    assert not res.forward[1] and not res.judged[1]
+
+
+def test_check_reverse_flags_what_left_or_moved_away():
+    ids = _planes()
+    rendered = np.full(ids.shape, 3.0, np.float32)
+    rendered[10:40, 10:30] = 2.5  # the map still has an object here ...
+    observed = np.full(ids.shape, 3.0, np.float32)
+    observed[10:40, 10:30] = 3.0  # ... the camera now sees the wall 0.5 m behind it
+    rrgb = np.full(ids.shape + (3,), 200, np.uint8)
+    rrgb[10:40, 10:30] = (30, 160, 40)
+    seg = GeometricSegmenter(width=80, min_area=0.01, min_instance_area=4)
+    res = inconsistency_check(observed, rendered, ids, 0.3, 0.05, rendered_rgb=rrgb, rendered_segmenter=seg,
+                              width=80)
+    assert not res.forward.any()
+    assert res.backward.tolist() == [True, False] and res.observed_moving.tolist() == [True, False]
+    assert len(res.rendered_flagged) == 1
+    flagged = res.rendered_ids == res.rendered_flagged[0]
+    assert flagged[12:38, 12:28].all() and not flagged[:, 40:].any()
+    # without the rendered-view segmentation only the forward direction runs
+    res = inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80)
+    assert not res.observed_moving.any()
+
+
+def test_check_background_is_checked():
+    ids = _planes()
+    rendered = np.full(ids.shape, 2.5, np.float32)
+    observed = rendered.copy()
+    observed[ids == 0] = 1.5
+    res = inconsistency_check(observed, rendered, ids, 0.3, 0.05, width=80)
+    assert res.background_moving and res.background_forward > 0.9 and not res.observed_moving.any()
+
+
+# ---------------------------------------------------------------- module
+W, H = 160, 120
+
+
+def _frame(index, **kw):
+    rgb, depth, gt = render_toy(W, H, seed=index, **kw)
+    return SimpleNamespace(index=index, timestamp=index / 30, rgb=rgb, depth=depth, gt=gt, pose_c2w=np.eye(4))
+
+
+def _module(encoder="color-hist", **over):
+    from dynslam_cli.motion.module import MotionModule
+
+    cfg = Config()
+    cfg.motion.encoder = encoder
+    cfg.motion.min_instance_area = 16
+    for k, v in over.items():
+        setattr(cfg.motion, k, v)
+    return MotionModule(cfg, toy_intrinsics(W, H), torch.device("cpu"))
+
+
+def _instance_of(inst, mask):
+    vals, counts = np.unique(inst.ids[mask], return_counts=True)
+    return int(vals[counts.argmax()])
+
+
+def test_module_end_to_end_person_learned_and_keyframes_forget():
+    mod = _module()
+    pose = np.eye(4)
+    f0 = _frame(0, person_x=-0.3)
+    inst0 = mod.observe(f0, pose)
+    assert inst0.count >= 3 and inst0.embeddings.shape == (inst0.count, mod.encoder.dim)
+    assert not inst0.dynamic.any() and inst0.static_mask.all()
+    assert {"segment", "encode", "classify"} <= set(inst0.timings)
+    pid = _instance_of(inst0, f0.gt == 1)
+    assert np.isfinite(inst0.centres[pid - 1]).all()
+    assert inst0.centres[pid - 1][2] == pytest.approx(2.0, abs=0.3)  # the person stands 2 m away
+    mod.register_keyframe(0, inst0)
+    assert mod.keyframe_dynamic_ids(0).size == 0
+    # the map (rendered) is the empty room: the person stands 1.5 m in front of it
+    room_depth = render_toy(W, H, person=False)[1]
+    rec = mod.check_and_update(f0, inst0, pose, room_depth[::2, ::2], None)
+    assert rec is not None and rec.frame == 0
+    assert rec.loss_after < rec.loss_before and rec.fixed and rec.replay_size >= 1
+    assert inst0.dynamic[pid - 1] and inst0.dynamic.sum() == 1
+    assert not inst0.static_mask[f0.gt == 1].mean() > 0.1
+    assert inst0.static_mask[f0.gt == 0].mean() > 0.9
+    # the keyframe stored before the update now forgets the person's rays
+    assert mod.keyframe_dynamic_ids(0).tolist() == [pid]
+    # next frame: the person moved; g already calls it dynamic, the check agrees → no update
+    f1 = _frame(1, person_x=0.2)
+    inst1 = mod.observe(f1, pose)
+    pid1 = _instance_of(inst1, f1.gt == 1)
+    assert inst1.dynamic[pid1 - 1] and inst1.dynamic.sum() == 1
+    assert mod.check_and_update(f1, inst1, pose, room_depth, None) is None
+    assert mod.updates == 1
+    json_line = rec.to_json()
+    assert set(json_line) >= {"frame", "instances", "labels", "loss_before", "loss_after", "replay_size"}
+    import json
+
+    assert json.loads(json.dumps(json_line))["labels"] == rec.labels  # one line of classifier_updates.jsonl
+
+
+def test_module_bidirectional_object_that_left():
+    mod = _module()
+    pose = np.eye(4)
+    f = _frame(0, person=False, box_x=None)  # the box is gone from the room ...
+    inst = mod.observe(f, pose)
+    rgb_map, depth_map, gt_map = render_toy(W, H, person=False, box_x=0.9, box_z=3.0)  # ... the map still has it
+    rec = mod.check_and_update(f, inst, pose, depth_map, rgb_map)
+    assert rec is not None and rec.rendered_positives == 1 and rec.fixed
+    assert not inst.dynamic.any()  # the wall it stood before is not a mover
+    # the box, when seen again (e.g. in a keyframe), is now classified dynamic
+    fb = _frame(2, person=False, box_x=0.9, box_z=3.0)
+    inst_b = mod.observe(fb, pose)
+    assert inst_b.dynamic[_instance_of(inst_b, fb.gt == 2) - 1]
+
+
+def test_module_prior_or_rule_and_state_dict_round_trip(tmp_path):
+    from dynslam_cli.motion.classifier import MotionClassifier, save_prior
+
+    f0 = _frame(0)
+    probe = _module()
+    inst = probe.observe(f0, np.eye(4))
+    pid = _instance_of(inst, f0.gt == 1)
+    prior = MotionClassifier(probe.encoder.dim, 16, lr=0.05, seed=0)
+    labels = np.zeros(inst.count, np.float32)
+    labels[pid - 1] = 1
+    prior.fit_steps(inst.embeddings, labels, max_steps=300)
+    path = save_prior(tmp_path / "prior.pt", prior, "color-hist", {})
+
+    mod = _module(prior=str(path), centre_feature=True)
+    inst = mod.observe(f0, np.eye(4))
+    assert inst.dynamic[pid - 1] and inst.prior_probs[pid - 1] > 0.5  # prior says person → dynamic
+    assert inst.embeddings.shape[1] == mod.encoder.dim and mod.in_dim == mod.encoder.dim + 3
+    mod.register_keyframe(3, inst)
+    assert mod.keyframe_dynamic_ids(3).tolist() == [pid]
+    rec = mod.check_and_update(f0, inst, np.eye(4), render_toy(W, H, person=False)[1], None)
+    assert rec is not None  # the online g learns the person too
+    state = mod.state_dict()
+    torch.save(state, tmp_path / "ck.pt")
+    mod2 = _module(prior=str(path), centre_feature=True)
+    mod2.load_state_dict(torch.load(tmp_path / "ck.pt", weights_only=True))
+    f1 = _frame(1, person_x=0.1)
+    a, b = mod.observe(f1, np.eye(4)), mod2.observe(f1, np.eye(4))
+    assert np.allclose(a.probs, b.probs) and np.array_equal(a.dynamic, b.dynamic)
+    assert mod2.keyframe_dynamic_ids(3).tolist() == mod.keyframe_dynamic_ids(3).tolist()
+    assert len(mod2.replay) == len(mod.replay) and mod2.updates == mod.updates
+    with pytest.raises(DynslamError, match="keyframe 99"):
+        mod2.keyframe_dynamic_ids(99)
+    with pytest.raises(DynslamError, match="saved with encoder"):
+        _module().load_state_dict(state)
+
+
+def test_module_with_effnet_encoder(tmp_path, monkeypatch):
+    monkeypatch.setenv("DYNSLAM_CACHE", str(tmp_path / "cache"))
+    mod = _module("effnet-lite0")
+    f0 = _frame(0)
+    inst = mod.observe(f0, np.eye(4))
+    assert inst.embeddings.shape == (inst.count, 1280)
+    rec = mod.check_and_update(f0, inst, np.eye(4), render_toy(W, H, person=False)[1], None)
+    assert rec is not None and inst.dynamic[_instance_of(inst, f0.gt == 1) - 1]
+    f1 = _frame(1, person_x=0.2)
+    inst1 = mod.observe(f1, np.eye(4))
+    assert inst1.dynamic[_instance_of(inst1, f1.gt == 1) - 1]
+    assert (tmp_path / "cache" / "effnet-lite0-224-v1.onnx").is_file()
