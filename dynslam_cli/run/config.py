@@ -18,3 +18,5 @@ class RunConfig:
     mesh: bool = opt(True, "Extract the mesh at the end.")
     mesh_resolution: float = opt(0.02, "Marching-cubes voxel size (m).")
     results_root: str = opt("results/runs", "Folder under which run folders are created.")
+    keep_checkpoint: bool = opt(False, "Keep checkpoint.pt after a completed run (it is removed by default).")
+    stop_after: int = opt(0, "Stop (status 'interrupted') after processing this many frames in this call; 0 = never. For tests of --resume.")

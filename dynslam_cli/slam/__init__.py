@@ -1,1 +1,1 @@
-"""Tracking and mapping (bundle adjustment) against the neural map."""
+"""Tracking, keyframes, bundle adjustment and the ``SLAM`` system."""

@@ -15,6 +15,9 @@ class TrackingConfig:
     ignore_border: int = opt(20, "Pixels ignored at the image border when sampling rays.")
     const_velocity: bool = opt(True, "Initialise each pose with the constant-velocity model.")
     max_jump: float = opt(0.3, "A tracked pose moving more than this (m) from its initial guess is divergence.")
+    keep_best: bool = opt(True, "Return the lowest-loss pose seen (else the last iterate; Co-SLAM's TUM config uses the last).")
+    resample_rays: bool = opt(True, "Draw new rays every iteration (Co-SLAM); false = one ray set per frame, so losses compare.")
+    min_pixels: int = opt(50, "Fewer usable pixels than this: tracking is skipped (constant-velocity pose, logged).")
 
 
 @dataclass
@@ -27,3 +30,7 @@ class MappingConfig:
     lr_map: float = opt(0.01, "Learning rate of the grid and decoders.")
     lr_pose: float = opt(0.001, "Learning rate of keyframe poses.")
     first_iters: int = opt(1000, "Mapping iterations on the first frame.")
+    first_rays: int = opt(2048, "Rays per mapping iteration on the first frame.")
+    min_rays_current: int = opt(100, "At least this many of the BA rays come from the current frame (Co-SLAM min_pixels_cur).")
+    optimize_current: bool = opt(True, "Also refine the current frame's pose in bundle adjustment (Co-SLAM optim_cur).")
+    fix_first_pose: bool = opt(True, "Keep the first keyframe's pose fixed in bundle adjustment.")

@@ -1,0 +1,71 @@
+"""Mesh extraction: marching cubes (scikit-image) at SDF level 0 over the observed volume,
+vertices coloured by the colour decoder."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from dynslam_cli.errors import DynslamError
+
+
+@torch.no_grad()
+def query_sdf(model, pts: np.ndarray, device, chunk: int = 1 << 16) -> np.ndarray:
+    out = np.empty(len(pts), np.float32)
+    for i in range(0, len(pts), chunk):
+        p = torch.from_numpy(np.ascontiguousarray(pts[i:i + chunk], dtype=np.float32)).to(device)
+        out[i:i + chunk] = model(p, color=False)[0].cpu().numpy()
+    return out
+
+
+@torch.no_grad()
+def query_rgb(model, pts: np.ndarray, device, chunk: int = 1 << 16) -> np.ndarray:
+    out = np.empty((len(pts), 3), np.float32)
+    for i in range(0, len(pts), chunk):
+        p = torch.from_numpy(np.ascontiguousarray(pts[i:i + chunk], dtype=np.float32)).to(device)
+        out[i:i + chunk] = model(p, color=True)[1].cpu().numpy()
+    return out
+
+
+def extract_mesh(model, observed_pts: np.ndarray, voxel: float, device, dilate_m: float | None = None):
+    """Mesh of the zero level set near ``observed_pts`` (world points seen by the camera).
+
+    Only voxels within ``dilate_m`` (default: 2 truncations) of an observed point are meshed, so
+    never-seen space (where the map is arbitrary) makes no surface."""
+    import trimesh
+    from scipy import ndimage
+    from skimage import measure
+
+    if voxel <= 0:
+        raise DynslamError(f"mesh voxel size must be > 0, got {voxel}")
+    if observed_pts is None or len(observed_pts) == 0:
+        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64))
+    dilate_m = 2 * model.truncation if dilate_m is None else dilate_m
+    b = model.bounds
+    lo = np.maximum(observed_pts.min(0) - dilate_m, b[0])
+    hi = np.minimum(observed_pts.max(0) + dilate_m, b[1])
+    if np.any(hi <= lo):
+        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64))
+    dims = np.maximum(np.ceil((hi - lo) / voxel).astype(int) + 1, 2)
+    if int(np.prod(dims)) > 400_000_000:
+        raise DynslamError(f"mesh grid {tuple(dims)} too large for voxel {voxel} m; use a larger run.mesh_resolution")
+    occ = np.zeros(dims, bool)
+    ijk = np.clip(np.round((observed_pts - lo) / voxel).astype(int), 0, dims - 1)
+    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    r = max(1, int(math.ceil(dilate_m / voxel)))
+    occ = ndimage.binary_dilation(occ, structure=ndimage.generate_binary_structure(3, 1), iterations=r)
+    xs = [lo[k] + np.arange(dims[k]) * voxel for k in range(3)]
+    sdf = np.ones(dims, np.float32)
+    # query only voxels near observations
+    idx = np.nonzero(occ)
+    pts = np.stack([xs[0][idx[0]], xs[1][idx[1]], xs[2][idx[2]]], -1)
+    sdf[idx] = query_sdf(model, pts, device)
+    if not (sdf.min() < 0 < sdf.max()):
+        return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64))
+    verts, faces, _, _ = measure.marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3, mask=occ)
+    verts = verts + lo
+    rgb = query_rgb(model, verts, device)
+    colors = np.concatenate([(rgb * 255).clip(0, 255).astype(np.uint8), np.full((len(verts), 1), 255, np.uint8)], 1)
+    return trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)

@@ -1,0 +1,94 @@
+"""The neural map f(x) -> (truncated SDF, colour) of Co-SLAM: hash grid + one-blob -> small MLPs.
+
+* coordinates are normalised per axis by the scene bounds to [0, 1];
+* SDF decoder: [grid features, one-blob] -> hidden (ReLU) -> (sdf, geo_feat); the SDF is in units
+  of the truncation ``tr`` (Co-SLAM's convention: metres = sdf * tr);
+* colour decoder: [one-blob, geo_feat] -> hidden (ReLU) -> RGB (sigmoid).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.map.config import MapConfig
+from dynslam_cli.map.encoding import OneBlob
+from dynslam_cli.map.hashgrid import HashGrid
+
+
+class _MLP(torch.nn.Module):
+    """Linear -> ReLU -> ... -> Linear, written as plain addmm calls."""
+
+    def __init__(self, dims: list[int]):
+        super().__init__()
+        self.layers = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = len(self.layers)
+        for i, layer in enumerate(self.layers):
+            x = F.linear(x, layer.weight, layer.bias)
+            if i < n - 1:
+                x = F.relu(x)
+        return x
+
+
+def check_bounds(bounds) -> np.ndarray:
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (2, 3) or not np.all(np.isfinite(b)) or np.any(b[1] <= b[0]):
+        raise DynslamError(f"map.bounds must be [[xmin,ymin,zmin],[xmax,ymax,zmax]] with min < max, got {bounds!r}")
+    return b
+
+
+class NeuralMap(torch.nn.Module):
+    def __init__(self, cfg: MapConfig, bounds):
+        super().__init__()
+        b = check_bounds(bounds)
+        self.cfg = cfg
+        self.truncation = float(cfg.truncation)
+        extent = float((b[1] - b[0]).max())
+        finest = max(int(math.ceil(extent / cfg.voxel_size)), cfg.base_resolution)
+        self.grid = HashGrid(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size, cfg.base_resolution,
+                             finest, impl=cfg.hashgrid_impl)
+        self.blob = OneBlob(cfg.oneblob_bins, 3)
+        h = cfg.hidden_dim
+        # two linear layers each (Co-SLAM num_layers = 2); forward() writes them as split matmuls
+        self.sdf_net = _MLP([self.grid.out_dim + self.blob.out_dim, h, 1 + cfg.geo_feat_dim])
+        self.color_net = _MLP([self.blob.out_dim + cfg.geo_feat_dim, h, 3])
+        self.register_buffer("bmin", torch.tensor(b[0], dtype=torch.float32))
+        self.register_buffer("bsize", torch.tensor(b[1] - b[0], dtype=torch.float32))
+
+    @property
+    def bounds(self) -> np.ndarray:
+        lo = self.bmin.detach().cpu().numpy().astype(np.float64)
+        return np.stack([lo, lo + self.bsize.detach().cpu().numpy()])
+
+    def normalize(self, pts: torch.Tensor) -> torch.Tensor:
+        return (pts - self.bmin) / self.bsize
+
+    def forward(self, pts: torch.Tensor, color: bool = True):
+        """World points (N, 3) -> sdf (N,) in truncation units, rgb (N, 3) in [0, 1] (or None)."""
+        x = self.normalize(pts)
+        blob = self.blob(x)
+        g = self.grid.out_dim
+        # first layers as split matmuls (no concatenated copies): W [grid | blob] = W_g grid + W_b blob
+        l0, l1 = self.sdf_net.layers
+        hid = torch.addmm(F.linear(blob, l0.weight[:, g:], l0.bias), self.grid(x), l0.weight[:, :g].t())
+        h = F.linear(F.relu(hid), l1.weight, l1.bias)
+        sdf = h[:, 0]
+        if not color:
+            return sdf, None
+        c0, c1 = self.color_net.layers
+        nb = self.blob.out_dim
+        hc = torch.addmm(F.linear(blob, c0.weight[:, :nb], c0.bias), h[:, 1:], c0.weight[:, nb:].t())
+        rgb = torch.sigmoid(F.linear(F.relu(hc), c1.weight, c1.bias))
+        return sdf, rgb
+
+    def grid_features(self, pts: torch.Tensor) -> torch.Tensor:
+        return self.grid(self.normalize(pts).clamp(0, 1))
+
+    def map_parameters(self):
+        return list(self.parameters())

@@ -1,0 +1,521 @@
+"""The SLAM system (Co-SLAM core): tracking against a frozen neural map, keyframes with stored
+rays, global bundle adjustment of map and keyframe poses.
+
+Every ray sampler takes a per-pixel mask (H×W bool, True = usable); the dynamic module passes its
+static mask and later refreshes ``keyframes[k].usable``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.geometry.camera import backproject, pixel_dirs
+from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
+from dynslam_cli.map.losses import ray_losses, smoothness_loss
+from dynslam_cli.map.model import NeuralMap
+from dynslam_cli.map.render import render_rays, sample_depths, sdf_weights
+from dynslam_cli.slam.keyframes import Keyframe, valid_pixels
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackResult:
+    pose_c2w: np.ndarray
+    loss: float
+    iters: int
+    diverged: bool
+    ms: float
+    reason: str = ""
+
+
+@dataclass
+class MapResult:
+    keyframe: bool
+    ba: bool
+    iters: int
+    loss: float
+    ms: float
+
+
+@dataclass
+class FrameResult:
+    index: int
+    timestamp: float
+    pose_c2w: np.ndarray
+    track: TrackResult
+    map: Optional[MapResult]
+    ms: float = 0.0
+
+
+@dataclass
+class _Current:
+    idx: int
+    timestamp: float
+    rgb: torch.Tensor     # (H*W, 3) float32 in [0, 1]
+    depth: torch.Tensor   # (H*W,) float32
+    depth_np: np.ndarray
+    rgb_np: np.ndarray
+    valid: np.ndarray     # flat indices usable for sampling
+    mask: Optional[np.ndarray]
+    extra: dict = field(default_factory=dict)
+
+
+def auto_bounds(frame, intr, pose_c2w: np.ndarray, margin: float) -> np.ndarray:
+    """Bounds from the first frame's depth (world frame) plus ``margin`` on every side."""
+    pts = backproject(np.asarray(frame.depth, np.float32), intr.fx, intr.fy, intr.cx, intr.cy).reshape(-1, 3)
+    pts = pts[pts[:, 2] > 0]
+    if len(pts) < 10:
+        raise DynslamError("cannot derive map bounds: the first frame has (almost) no valid depth; set map.bounds")
+    pts = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+    lo = np.percentile(pts, 0.5, axis=0) - margin
+    hi = np.percentile(pts, 99.5, axis=0) + margin
+    cam = pose_c2w[:3, 3]
+    return np.stack([np.minimum(lo, cam - margin), np.maximum(hi, cam + margin)])
+
+
+class SLAM:
+    def __init__(self, cfg, intrinsics, device: torch.device, bounds=None):
+        self.cfg = cfg
+        self.intr = intrinsics
+        self.device = torch.device(device)
+        self.H, self.W = int(intrinsics.height), int(intrinsics.width)
+        self.bounds = None if bounds is None else np.asarray(bounds, np.float64)
+        self.model: Optional[NeuralMap] = None
+        self.map_opt: Optional[torch.optim.Optimizer] = None
+        self.keyframes: list[Keyframe] = []
+        self.poses: list[np.ndarray] = []       # latest estimate of every frame (c2w)
+        self.rel: list[Optional[np.ndarray]] = []  # pose relative to its keyframe at tracking time
+        self.kf_of: list[int] = []               # keyframe frame id each frame is expressed against
+        self.timestamps: list[float] = []
+        self.events: list[dict] = []
+        seed = int(cfg.run.seed)
+        self.rng = np.random.default_rng(seed)
+        self.tgen = torch.Generator(device=self.device)
+        self.tgen.manual_seed(seed)
+        vv, uu = np.mgrid[0:self.H, 0:self.W]
+        self._uv = np.stack([uu.ravel(), vv.ravel()], 1).astype(np.int32)
+        self.dirs = torch.from_numpy(pixel_dirs(uu.ravel(), vv.ravel(), intrinsics.fx, intrinsics.fy,
+                                                intrinsics.cx, intrinsics.cy)).to(self.device)
+        self._cur: Optional[_Current] = None
+        self._kf_cache = None  # concatenated keyframe rays (torch) and owners
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n_frames(self) -> int:
+        return len(self.poses)
+
+    def _t(self, a, dtype=torch.float32) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(a), dtype=dtype).to(self.device)
+
+    def _build_model(self, bounds: np.ndarray) -> None:
+        self.bounds = np.asarray(bounds, np.float64)
+        with torch.random.fork_rng(devices=[]):  # initialise from run.seed, leave the global RNG alone
+            torch.manual_seed(int(self.cfg.run.seed))
+            self.model = NeuralMap(self.cfg.map, self.bounds).to(self.device)
+        kw = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
+        try:
+            self.map_opt = torch.optim.Adam(self.model.parameters(), lr=self.cfg.mapping.lr_map,
+                                            betas=(0.9, 0.99), eps=1e-15, **kw)
+        except (RuntimeError, TypeError):
+            self.map_opt = torch.optim.Adam(self.model.parameters(), lr=self.cfg.mapping.lr_map,
+                                            betas=(0.9, 0.99), eps=1e-15)
+
+    def _prepare(self, frame, mask, need_depth=True) -> _Current:
+        depth = np.asarray(frame.depth, np.float32)
+        rgb = np.asarray(frame.rgb)
+        if depth.shape != (self.H, self.W) or rgb.shape[:2] != (self.H, self.W):
+            raise DynslamError(f"frame {getattr(frame, 'index', '?')}: image size {rgb.shape[:2]}/{depth.shape} "
+                               f"does not match the intrinsics {self.H}x{self.W}")
+        depth = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+        valid = valid_pixels(depth, mask, self.cfg.tracking.ignore_border)
+        return _Current(
+            idx=self.n_frames, timestamp=float(getattr(frame, "timestamp", self.n_frames)),
+            rgb=torch.from_numpy(rgb.reshape(-1, 3)).to(self.device).float().div_(255.0),
+            depth=torch.from_numpy(depth.reshape(-1)).to(self.device),
+            depth_np=depth, rgb_np=rgb, valid=valid, mask=None if mask is None else np.asarray(mask, bool))
+
+    def _sample(self, valid: np.ndarray, n: int) -> np.ndarray:
+        return valid[self.rng.integers(0, len(valid), size=n)]
+
+    def _set_map_grad(self, on: bool) -> None:
+        for p in self.model.parameters():
+            p.requires_grad_(on)
+
+    # ------------------------------------------------------------------ tracking
+    def _initial_guess(self) -> np.ndarray:
+        if len(self.poses) >= 2 and self.cfg.tracking.const_velocity:
+            p1, p2 = self.poses[-1], self.poses[-2]
+            return orthonormalize(p1 @ inv_np(p2) @ p1)
+        return self.poses[-1].copy()
+
+    def track(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
+        t0 = time.perf_counter()
+        cur = self._prepare(frame, mask)
+        self._cur = cur
+        if self.n_frames == 0:
+            gt = getattr(frame, "pose_c2w", None)
+            pose = np.array(gt, np.float64) if gt is not None else np.eye(4)
+            if self.model is None:
+                b = self.bounds if self.bounds is not None else auto_bounds(frame, self.intr, pose, self.cfg.map.auto_margin)
+                self._build_model(b)
+            return self._finish_track(cur, pose, 0.0, 0, False, t0)
+        tc = self.cfg.tracking
+        init = self._initial_guess()
+        if len(cur.valid) < tc.min_pixels or tc.iters <= 0:
+            reason = f"only {len(cur.valid)} usable pixels" if tc.iters > 0 else ""
+            if reason:
+                self._event(cur.idx, "skipped", reason)
+            return self._finish_track(cur, init, float("nan"), 0, bool(reason), t0, reason)
+        R, S = tc.n_rays, self.cfg.map.samples_free + self.cfg.map.samples_surface
+        if tc.resample_rays:
+            idx = torch.from_numpy(self._sample(cur.valid, tc.iters * R)).to(self.device)
+        else:
+            idx = torch.from_numpy(np.tile(self._sample(cur.valid, R), tc.iters)).to(self.device)
+        dirs_c = self.dirs[idx].view(tc.iters, R, 3)
+        rgb_t = cur.rgb[idx].view(tc.iters, R, 3)
+        d_t = cur.depth[idx]
+        z_all = sample_depths(d_t, self.cfg.map, self.tgen).view(tc.iters, R, S)
+        d_t = d_t.view(tc.iters, R)
+        T0 = self._t(init)
+        xi = torch.zeros(6, device=self.device, requires_grad=True)
+        opt = torch.optim.Adam([xi], lr=tc.lr)
+        best_loss, best_xi = float("inf"), torch.zeros(6, device=self.device)
+        self._set_map_grad(False)
+        bad = ""
+        try:
+            for it in range(tc.iters):
+                T = T0 @ se3_exp(xi)
+                o = T[:3, 3].unsqueeze(0)
+                d = dirs_c[it] @ T[:3, :3].T
+                out = render_rays(self.model, o, d, z_all[it])
+                loss = ray_losses(out, z_all[it], rgb_t[it], d_t[it], self.cfg.map).total
+                lv = float(loss.detach())
+                if not np.isfinite(lv):
+                    bad = f"non-finite loss at iteration {it}"
+                    break
+                if lv < best_loss or not tc.keep_best:
+                    best_loss = lv
+                    best_xi = xi.detach().clone()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+            if not tc.keep_best and not bad:
+                best_xi = xi.detach().clone()
+        finally:
+            self._set_map_grad(True)
+        pose = init @ se3_exp(best_xi.double().cpu()).numpy() if self.device.type != "cpu" else \
+            init @ se3_exp(best_xi.double()).numpy()
+        jump = float(np.linalg.norm(pose[:3, 3] - init[:3, 3]))
+        if not bad and (not np.all(np.isfinite(pose)) or best_loss == float("inf")):
+            bad = "non-finite pose"
+        if not bad and jump > tc.max_jump:
+            bad = f"jump of {jump:.3f} m > tracking.max_jump {tc.max_jump}"
+        if bad:
+            self._event(cur.idx, "diverged", bad)
+            return self._finish_track(cur, init, best_loss, tc.iters, True, t0, bad)
+        return self._finish_track(cur, orthonormalize(pose), best_loss, tc.iters, False, t0)
+
+    def _event(self, idx: int, kind: str, detail: str) -> None:
+        self.events.append({"frame": int(idx), "kind": kind, "detail": detail})
+        log.warning("frame %d: tracking %s (%s); using the constant-velocity pose", idx, kind, detail)
+
+    def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
+        ke = self.cfg.mapping.keyframe_every
+        self.poses.append(np.array(pose, np.float64))
+        self.timestamps.append(cur.timestamp)
+        kf_id = (cur.idx // ke) * ke
+        self.kf_of.append(kf_id)
+        if kf_id < cur.idx:
+            self.rel.append(inv_np(self.poses[kf_id]) @ self.poses[cur.idx])
+        else:
+            self.rel.append(None)
+        return TrackResult(self.poses[-1].copy(), float(loss), int(iters), bool(diverged),
+                           (time.perf_counter() - t0) * 1000, reason)
+
+    # ------------------------------------------------------------------ mapping
+    def map(self, frame, mask: Optional[np.ndarray] = None, instance_ids: Optional[np.ndarray] = None) -> Optional[MapResult]:
+        """Bundle adjustment when due, then keyframe insertion when due, for the last tracked frame."""
+        cur = self._cur
+        if cur is None or cur.idx != self.n_frames - 1:
+            raise DynslamError("SLAM.map() must follow track() of the same frame")
+        if mask is not None and (cur.mask is None or not np.array_equal(np.asarray(mask, bool), cur.mask)):
+            cur.valid = valid_pixels(cur.depth_np, mask, self.cfg.tracking.ignore_border)
+            cur.mask = np.asarray(mask, bool)
+        mc = self.cfg.mapping
+        t0 = time.perf_counter()
+        ba = False
+        iters, loss = 0, float("nan")
+        if cur.idx == 0:
+            if mc.first_iters > 0:
+                loss = self._optimize(cur, mc.first_iters, mc.first_rays, first=True)
+                iters, ba = mc.first_iters, True
+        elif mc.every > 0 and cur.idx % mc.every == 0 and mc.iters > 0:
+            loss = self._optimize(cur, mc.iters, mc.n_rays, first=False)
+            iters, ba = mc.iters, True
+        kf = False
+        if cur.idx % mc.keyframe_every == 0:
+            self._add_keyframe(cur, frame, instance_ids)
+            kf = True
+        if not ba and not kf:
+            return None
+        return MapResult(kf, ba, iters, float(loss), (time.perf_counter() - t0) * 1000)
+
+    def _add_keyframe(self, cur: _Current, frame, instance_ids) -> None:
+        cand = valid_pixels(cur.depth_np, None, self.cfg.tracking.ignore_border)
+        n = max(1, int(round(self.cfg.mapping.keyframe_ray_fraction * self.H * self.W)))
+        n = min(n, len(cand))
+        sel = np.sort(self.rng.choice(cand, size=n, replace=False)) if n > 0 else np.zeros(0, np.int64)
+        uv = self._uv[sel]
+        if instance_ids is not None:
+            ids = np.asarray(instance_ids).reshape(-1)[sel].astype(np.int32)
+        else:
+            ids = np.full(len(sel), -1, np.int32)
+        usable = np.ones(len(sel), bool) if cur.mask is None else cur.mask.reshape(-1)[sel].copy()
+        kf = Keyframe(cur.idx, cur.timestamp, uv, cur.rgb_np.reshape(-1, 3)[sel].copy(),
+                      cur.depth_np.reshape(-1)[sel].copy(), ids, usable, self.poses[cur.idx].copy())
+        self.keyframes.append(kf)
+        self._kf_cache = None
+
+    def _kf_tensors(self):
+        if self._kf_cache is None or self._kf_cache["n"] != len(self.keyframes):
+            if not self.keyframes:
+                return None
+            uv = np.concatenate([k.pixels for k in self.keyframes])
+            flat = torch.from_numpy((uv[:, 1].astype(np.int64) * self.W + uv[:, 0])).to(self.device)
+            self._kf_cache = {
+                "n": len(self.keyframes),
+                "dirs": self.dirs[flat],
+                "rgb": self._t(np.concatenate([k.rgb for k in self.keyframes])) / 255.0,
+                "depth": self._t(np.concatenate([k.depth for k in self.keyframes])),
+                "owner": torch.from_numpy(np.concatenate([np.full(len(k), i) for i, k in enumerate(self.keyframes)])).to(self.device),
+            }
+        return self._kf_cache
+
+    def ba_ray_indices(self, cur: _Current, iters: int, n_rays: int, use_keyframes: bool = True):
+        """Rays for ``iters`` BA iterations: indices into the concatenated keyframe rays (usable
+        ones only) and flat pixel indices of the current frame (its valid, unmasked pixels)."""
+        mc = self.cfg.mapping
+        n_kf = len(self.keyframes) if use_keyframes else 0
+        usable = np.flatnonzero(np.concatenate([k.usable for k in self.keyframes])) if n_kf else np.zeros(0, np.int64)
+        if len(usable) == 0:
+            n_cur, n_kfr = n_rays, 0
+        else:
+            n_cur = min(n_rays, max(n_rays // (n_kf + 1), mc.min_rays_current))
+            n_kfr = n_rays - n_cur
+        if len(cur.valid) == 0:
+            n_cur, n_kfr = 0, (n_rays if len(usable) else 0)
+        kf_idx = usable[self.rng.integers(0, len(usable), size=iters * n_kfr)] if n_kfr else np.zeros(0, np.int64)
+        cur_idx = self._sample(cur.valid, iters * n_cur) if n_cur else np.zeros(0, np.int64)
+        return kf_idx, cur_idx
+
+    def _optimize(self, cur: _Current, iters: int, n_rays: int, first: bool) -> float:
+        """Joint optimisation of the map and (unless ``first``) keyframe + current poses."""
+        mc, mp = self.cfg.mapping, self.cfg.map
+        kf = None if first else self._kf_tensors()
+        n_kf = 0 if kf is None else kf["n"]
+        kf_idx_np, cur_idx_np = self.ba_ray_indices(cur, iters, n_rays, use_keyframes=n_kf > 0)
+        n_kfr, n_cur = len(kf_idx_np) // iters, len(cur_idx_np) // iters
+        if n_cur + n_kfr == 0:
+            return float("nan")
+        # poses: keyframes (first fixed) + current frame
+        kf_poses = [k.pose_c2w for k in self.keyframes] if n_kf else []
+        base = np.stack(kf_poses + [self.poses[cur.idx]]) if not first else self.poses[cur.idx][None]
+        base_t = self._t(base)
+        n_p = base.shape[0]
+        opt_mask = torch.ones(n_p, 1, device=self.device)
+        if not first:
+            if mc.fix_first_pose:
+                opt_mask[0] = 0
+            if not mc.optimize_current:
+                opt_mask[-1] = 0
+        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and mc.lr_pose > 0
+        xi = torch.zeros(n_p, 6, device=self.device, requires_grad=optimise_poses)
+        pose_opt = torch.optim.Adam([xi], lr=mc.lr_pose) if optimise_poses else None
+        S = mp.samples_free + mp.samples_surface
+        # sample all iterations' rays up front
+        cur_idx = torch.from_numpy(cur_idx_np).to(self.device) if n_cur else None
+        kf_idx = torch.from_numpy(kf_idx_np).to(self.device) if n_kfr else None
+        parts_dirs, parts_rgb, parts_d, parts_owner = [], [], [], []
+        if n_kfr:
+            parts_dirs.append(kf["dirs"][kf_idx].view(iters, n_kfr, 3))
+            parts_rgb.append(kf["rgb"][kf_idx].view(iters, n_kfr, 3))
+            parts_d.append(kf["depth"][kf_idx].view(iters, n_kfr))
+            parts_owner.append(kf["owner"][kf_idx].view(iters, n_kfr))
+        if n_cur:
+            parts_dirs.append(self.dirs[cur_idx].view(iters, n_cur, 3))
+            parts_rgb.append(cur.rgb[cur_idx].view(iters, n_cur, 3))
+            parts_d.append(cur.depth[cur_idx].view(iters, n_cur))
+            parts_owner.append(torch.full((iters, n_cur), n_p - 1, device=self.device, dtype=torch.long))
+        dirs_a = torch.cat(parts_dirs, 1)
+        rgb_a = torch.cat(parts_rgb, 1)
+        d_a = torch.cat(parts_d, 1)
+        own_a = torch.cat(parts_owner, 1)
+        R = dirs_a.shape[1]
+        z_a = sample_depths(d_a.reshape(-1), mp, self.tgen).view(iters, R, S)
+        b = self.model.bounds
+        smooth_box = None
+        if mp.w_smooth > 0:
+            side = mp.smooth_grid * mp.smooth_voxel
+            hi = np.maximum(b[1] - side, b[0])
+            smooth_box = self._t(np.stack([b[0], hi]))
+        last = float("nan")
+        for it in range(iters):
+            if optimise_poses:
+                T = base_t @ se3_exp(xi * opt_mask)
+            else:
+                T = base_t
+            own = own_a[it]
+            Ts = T[own]
+            o = Ts[:, :3, 3]
+            d = (Ts[:, :3, :3] @ dirs_a[it][..., None])[..., 0]
+            out = render_rays(self.model, o, d, z_a[it])
+            loss = ray_losses(out, z_a[it], rgb_a[it], d_a[it], mp).total
+            if smooth_box is not None:
+                loss = loss + mp.w_smooth * smoothness_loss(self.model, smooth_box, mp, self.tgen)
+            self.map_opt.zero_grad(set_to_none=True)
+            if pose_opt is not None:
+                pose_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.map_opt.step()
+            if pose_opt is not None:
+                pose_opt.step()
+            last = float(loss.detach())
+        if not np.isfinite(last):
+            self._event(cur.idx, "mapping-nonfinite", "bundle adjustment loss is not finite")
+        if optimise_poses:
+            with torch.no_grad():
+                new = (base_t.double() @ se3_exp((xi * opt_mask).double())).cpu().numpy()
+            if np.all(np.isfinite(new)):
+                for i, k in enumerate(self.keyframes[:n_kf]):
+                    k.pose_c2w = orthonormalize(new[i])
+                    self.poses[k.frame_id] = k.pose_c2w.copy()
+                self.poses[cur.idx] = orthonormalize(new[-1])
+        return last
+
+    def process(self, frame, mask=None, instance_ids=None) -> FrameResult:
+        t0 = time.perf_counter()
+        tr = self.track(frame, mask)
+        mr = self.map(frame, mask, instance_ids)
+        idx = self.n_frames - 1
+        return FrameResult(idx, self.timestamps[idx], self.poses[idx].copy(), tr, mr,
+                           (time.perf_counter() - t0) * 1000)
+
+    # ------------------------------------------------------------------ outputs
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) c2w; non-keyframes re-expressed relative to their refined keyframe."""
+        kf_pose = {k.frame_id: k.pose_c2w for k in self.keyframes}
+        out = np.zeros((self.n_frames, 4, 4))
+        for i in range(self.n_frames):
+            k = self.kf_of[i]
+            if self.rel[i] is not None and k in kf_pose:
+                out[i] = kf_pose[k] @ self.rel[i]
+            else:
+                out[i] = self.poses[i]
+        return out
+
+    @torch.no_grad()
+    def render(self, pose_c2w: np.ndarray, scale: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (h×w, m; 0 = no surface) and colour (h×w×3 uint8) rendered at ``scale`` resolution
+        without depth guidance: coarse samples over [near, far], then fine samples around the first
+        surface crossing."""
+        if self.model is None:
+            raise DynslamError("render() needs a map: process a frame first")
+        mp = self.cfg.map
+        h, w = max(1, int(round(self.H * scale))), max(1, int(round(self.W * scale)))
+        vv, uu = np.mgrid[0:h, 0:w]
+        sx, sy = self.W / w, self.H / h
+        u = (uu.ravel() + 0.5) * sx - 0.5
+        v = (vv.ravel() + 0.5) * sy - 0.5
+        dirs = self._t(pixel_dirs(u, v, self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy))
+        T = self._t(pose_c2w)
+        d = dirs @ T[:3, :3].T
+        o = T[:3, 3].unsqueeze(0)
+        depth = torch.zeros(len(d), device=self.device)
+        rgb = torch.zeros(len(d), 3, device=self.device)
+        nc, nf = mp.render_coarse, mp.render_fine
+        zc = mp.near + (torch.arange(nc, device=self.device, dtype=torch.float32) + 0.5) / nc * (mp.far - mp.near)
+        tr = self.model.truncation
+        chunk = max(1, 65536 // nc)
+        for i in range(0, len(d), chunk):
+            dd = d[i:i + chunk]
+            r = len(dd)
+            pts = o[:, None, :] + dd[:, None, :] * zc[None, :, None]
+            s = self.model(pts.reshape(-1, 3), color=False)[0].view(r, nc)
+            cross = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
+            has = cross.any(1)
+            j = cross.float().argmax(1)
+            s0 = s.gather(1, j[:, None])[:, 0]
+            s1 = s.gather(1, (j + 1)[:, None])[:, 0]
+            z0 = zc[j]
+            z1 = zc[j + 1]
+            zs = z0 + (z1 - z0) * s0 / (s0 - s1).clamp_min(1e-6)
+            k = torch.arange(nf, device=self.device, dtype=torch.float32)
+            zf = (zs - tr)[:, None] + (k + 0.5) / nf * 2 * tr
+            zf = zf.clamp_min(mp.near)
+            out = render_rays(self.model, o, dd, zf)
+            depth[i:i + chunk] = torch.where(has, out["depth"], torch.zeros_like(zs))
+            rgb[i:i + chunk] = out["rgb"] * has[:, None]
+        return (depth.view(h, w).cpu().numpy(),
+                (rgb.view(h, w, 3).cpu().numpy() * 255).clip(0, 255).astype(np.uint8))
+
+    def observed_points(self, max_points: int = 2_000_000) -> np.ndarray:
+        pts = []
+        for k in self.keyframes:
+            dirs = pixel_dirs(k.pixels[:, 0], k.pixels[:, 1], self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy)
+            p = dirs * k.depth[:, None]
+            pts.append(p @ k.pose_c2w[:3, :3].T + k.pose_c2w[:3, 3])
+        if not pts:
+            return np.zeros((0, 3))
+        p = np.concatenate(pts)
+        if len(p) > max_points:
+            p = p[np.random.default_rng(0).choice(len(p), max_points, replace=False)]
+        return p
+
+    def extract_mesh(self, voxel: float):
+        from dynslam_cli.map.mesh import extract_mesh
+
+        if self.model is None:
+            raise DynslamError("extract_mesh() needs a map: process a frame first")
+        return extract_mesh(self.model, self.observed_points(), voxel, self.device)
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        return {
+            "version": 1,
+            "bounds": None if self.bounds is None else self.bounds.copy(),
+            "model": None if self.model is None else {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
+            "map_opt": None if self.map_opt is None else self.map_opt.state_dict(),
+            "keyframes": [k.to_dict() for k in self.keyframes],
+            "poses": np.array(self.poses).reshape(-1, 4, 4),
+            "rel": [None if r is None else r.copy() for r in self.rel],
+            "kf_of": list(self.kf_of),
+            "timestamps": list(self.timestamps),
+            "events": list(self.events),
+            "rng": self.rng.bit_generator.state,
+            "tgen": self.tgen.get_state().cpu(),
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        if d.get("bounds") is not None:
+            self._build_model(np.asarray(d["bounds"]))
+            self.model.load_state_dict(d["model"])
+            if d.get("map_opt") is not None:
+                self.map_opt.load_state_dict(d["map_opt"])
+        self.keyframes = [Keyframe.from_dict(k) for k in d["keyframes"]]
+        self.poses = [np.array(p, np.float64) for p in d["poses"]]
+        self.rel = [None if r is None else np.array(r) for r in d["rel"]]
+        self.kf_of = list(d["kf_of"])
+        self.timestamps = list(d["timestamps"])
+        self.events = list(d["events"])
+        self.rng.bit_generator.state = d["rng"]
+        self.tgen.set_state(d["tgen"])
+        self._cur = None
+        self._kf_cache = None

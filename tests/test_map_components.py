@@ -1,0 +1,77 @@
+import numpy as np
+import torch
+
+from dynslam_cli.config import Config
+from dynslam_cli.map.encoding import OneBlob
+from dynslam_cli.map.losses import sdf_free_losses
+from dynslam_cli.map.render import sample_depths, sdf_weights
+
+
+def test_oneblob_values_and_gradient():
+    enc = OneBlob(4, 3)
+    x = torch.tensor([[0.125, 0.5, 0.9]], requires_grad=True)
+    out = enc(x).view(3, 4)
+    vals = out.detach()
+    centres = (np.arange(4) + 0.5) / 4
+    expect = np.exp(-((x.detach().numpy().reshape(3, 1) - centres) ** 2) * 0.5 * 16)
+    assert np.allclose(out.detach().numpy(), expect, atol=1e-6)
+    assert vals[0].argmax() == 0 and vals[2].argmax() == 3 and abs(float(vals[0, 0]) - 1.0) < 1e-6
+    out.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_weights_peak_at_the_surface():
+    z = torch.linspace(0.5, 1.5, 41)[None]
+    tr = 0.1
+    sdf = (1.0 - z) / tr  # surface at z = 1
+    w = sdf_weights(sdf, z, tr)
+    assert abs(float(z[0, w.argmax()]) - 1.0) < 0.03
+    assert abs(float(w.sum()) - 1.0) < 1e-5
+    assert float(w[0, z[0] > 1.0 + tr + 1e-6].sum()) == 0.0  # nothing behind the first surface + tr
+    assert abs(float((w * z).sum()) - 1.0) < 0.01  # sharp weights: the rendered depth is the surface
+    # free-space samples (sdf = 1 truncation) get almost no weight
+    wf = sdf_weights(torch.tensor([[1.0, 1.0, 0.2, -0.2]]), torch.tensor([[0.5, 0.7, 0.98, 1.02]]), tr)
+    assert float(wf[0, :2].sum()) < 1e-3
+
+
+def test_depth_guided_sampling_bands_and_missing_depth():
+    cfg = Config().map
+    d = torch.tensor([2.0, 0.0, 1.0])
+    z = sample_depths(d, cfg, torch.Generator().manual_seed(0))
+    S = cfg.samples_free + cfg.samples_surface
+    assert z.shape == (3, S)
+    band = z[0, cfg.samples_free:]
+    assert torch.all((band >= 2.0 - cfg.surface_range) & (band <= 2.0 + cfg.surface_range))
+    assert torch.all(z[0, :cfg.samples_free] <= 2.0 - cfg.surface_range) and torch.all(z[0] >= cfg.near)
+    assert torch.all((z[1] >= cfg.near) & (z[1] <= cfg.far)) and float(z[1].max()) > 0.8 * cfg.far
+    assert torch.all(z[:, 1:] >= z[:, :-1])
+
+
+def test_sdf_and_free_space_losses_vanish_for_the_true_sdf():
+    tr = 0.1
+    z = torch.linspace(0.2, 1.3, 30)[None]
+    d = torch.tensor([1.0])
+    true = ((d[:, None] - z) / tr).clamp(-1, 1)
+    free, sdf = sdf_free_losses(z, d, true, tr)
+    assert float(free) < 1e-12 and float(sdf) < 1e-12
+    free2, sdf2 = sdf_free_losses(z, d, true + 0.5, tr)
+    assert float(sdf2) > 1e-4 and float(free2) > 1e-4
+
+
+def test_map_forward_matches_the_concatenated_decoders():
+    from dynslam_cli.map.model import NeuralMap
+
+    torch.manual_seed(0)
+    cfg = Config().map
+    cfg.n_levels, cfg.log2_hashmap_size = 4, 10
+    m = NeuralMap(cfg, [[0, 0, 0], [2, 2, 2]])
+    with torch.no_grad():
+        m.grid.embeddings.uniform_(-0.1, 0.1)
+    x = torch.rand(64, 3) * 2
+    s, c = m(x)
+    xn = m.normalize(x)
+    b = m.blob(xn)
+    h = m.sdf_net(torch.cat([m.grid(xn), b], -1))
+    c2 = torch.sigmoid(m.color_net(torch.cat([b, h[:, 1:]], -1)))
+    assert torch.allclose(s, h[:, 0], atol=1e-5) and torch.allclose(c, c2, atol=1e-5)
+    assert c.min() >= 0 and c.max() <= 1 and m(x, color=False)[1] is None

@@ -1,0 +1,82 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dynslam_cli.cli import app
+from dynslam_cli.slam.toyscene import write_sequence
+
+TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
+        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=15", "--set", "mapping.first_rays=256",
+        "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
+        "--set", "mapping.n_rays=256", "--set", "tracking.ignore_border=2", "--set", "run.threads=1",
+        "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2"]
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return write_sequence(tmp_path_factory.mktemp("clip") / "toybox", n=6, width=80, height=60)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def restore_threads():
+    old = torch.get_num_threads()
+    yield
+    torch.set_num_threads(old)
+
+
+def _run(args):
+    return CliRunner().invoke(app, args)
+
+
+def _traj(path):
+    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    return np.array([[float(v) for v in r] for r in rows])
+
+
+def test_run_writes_the_run_folder(clip, tmp_path):
+    out = tmp_path / "run"
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q"] + TINY)
+    assert res.exit_code == 0, res.output
+    for name in ("config.yaml", "run.json", "traj_est.txt", "mesh.ply", "timing.json"):
+        assert (out / name).is_file(), name
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["status"] == "completed" and meta["mode"] == "static" and meta["frames"] == 6
+    assert meta["sequence"]["groundtruth"].endswith("groundtruth.txt") and meta["device"] == "cpu"
+    traj = _traj(out / "traj_est.txt")
+    assert traj.shape == (6, 8)
+    stamps = [ln.split()[0] for ln in (clip / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert np.allclose(traj[:, 0], [float(s) for s in stamps])
+    assert np.allclose(np.linalg.norm(traj[:, 4:], axis=1), 1, atol=1e-5)
+    timing = json.loads((out / "timing.json").read_text())
+    assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
+    assert (out / "mesh.ply").read_bytes()[:3] == b"ply" and b"binary" in (out / "mesh.ply").read_bytes()[:200]
+    assert not (out / "checkpoint.pt").exists()
+
+
+def test_resume_gives_the_same_trajectory(clip, tmp_path):
+    full = tmp_path / "full"
+    part = tmp_path / "part"
+    args = ["run", "--seq", str(clip), "--mode", "static", "-q", "--set", "run.mesh=false"] + TINY
+    assert _run(args + ["--out", str(full)]).exit_code == 0
+    res = _run(args + ["--out", str(part), "--set", "run.stop_after=3"])
+    assert res.exit_code == 0 and "--resume" in res.output
+    assert json.loads((part / "run.json").read_text())["status"] == "interrupted"
+    assert (part / "checkpoint.pt").is_file() and not (part / "traj_est.txt").exists()
+    res = _run(args + ["--out", str(part), "--set", "run.stop_after=3", "--resume"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((part / "run.json").read_text())["status"] == "completed"
+    assert np.allclose(_traj(full / "traj_est.txt"), _traj(part / "traj_est.txt"), atol=1e-6)
+
+
+def test_bad_input_exits_2_with_one_line(clip, tmp_path):
+    res = _run(["run", "--seq", str(tmp_path / "missing"), "--mode", "static", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and res.output.strip().startswith("error:") and len(res.output.strip().splitlines()) == 1
+    res = _run(["run", "--seq", str(clip), "--mode", "dynamic", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "dynamic mode is not available yet" in res.output
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o"), "--device", "tpu"])
+    assert res.exit_code == 2 and "unknown device" in res.output
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o2"), "--resume"])
+    assert res.exit_code == 2 and "checkpoint" in res.output

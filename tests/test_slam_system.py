@@ -1,0 +1,127 @@
+import io
+
+import numpy as np
+import pytest
+import torch
+
+from dynslam_cli.geometry.lie import se3_exp_np
+from dynslam_cli.slam.keyframes import valid_pixels
+from dynslam_cli.slam.system import SLAM
+from dynslam_cli.slam.toyscene import TinyIntrinsics, render, tiny_config, trajectory
+
+
+class F:
+    def __init__(self, i, pose, intr, with_gt=True):
+        self.index, self.timestamp = i, float(i)
+        self.rgb, self.depth = render(pose, intr)
+        self.pose_c2w = pose if with_gt else None
+
+
+INTR = TinyIntrinsics(48, 36, f=20.0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # 2 shared cores: one intra-op thread avoids OpenMP spin-waiting under load (10x faster here)
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    slam = SLAM(cfg, INTR, torch.device("cpu"))
+    slam.process(F(0, np.eye(4), INTR))
+    return cfg, slam.state_dict()
+
+
+def _load(cfg, state):
+    s = SLAM(cfg, INTR, torch.device("cpu"))
+    s.load_state_dict(state)
+    return s
+
+
+def test_fitted_map_renders_the_right_depth(fitted):
+    cfg, state = fitted
+    slam = _load(cfg, state)
+    depth, rgb = slam.render(np.eye(4), scale=0.5)
+    _, gt = render(np.eye(4), TinyIntrinsics(24, 18, f=INTR.fx / 2))
+    assert depth.shape == (18, 24) and rgb.shape == (18, 24, 3) and rgb.dtype == np.uint8
+    err = np.abs(depth - gt)[3:-3, 3:-3]
+    assert np.median(err) < 0.05, np.median(err)
+
+
+def test_tracking_recovers_a_small_perturbation(fitted):
+    cfg, state = fitted
+    slam = _load(cfg, state)
+    true = se3_exp_np([0.03, -0.02, 0.02, 0.01, -0.015, 0.01])
+    res = slam.track(F(1, true, INTR))
+    assert not res.diverged and res.iters == cfg.tracking.iters
+    before = np.linalg.norm(true[:3, 3])
+    after = np.linalg.norm(res.pose_c2w[:3, 3] - true[:3, 3])
+    assert after < 0.5 * before, (before, after)
+
+
+def test_divergence_falls_back_to_the_constant_velocity_pose(fitted):
+    cfg, state = fitted
+    cfg2 = tiny_config()
+    cfg2.tracking.max_jump = 1e-9
+    slam = _load(cfg2, state)
+    res = slam.track(F(1, se3_exp_np([0.03, 0, 0, 0, 0, 0]), INTR))
+    assert res.diverged and "jump" in res.reason
+    assert np.allclose(res.pose_c2w, np.eye(4)) and slam.events[-1]["frame"] == 1
+    slam2 = _load(cfg, state)
+    slam2.model.forward = lambda pts, color=True: (torch.full((len(pts),), float("nan")), torch.zeros(len(pts), 3))
+    res2 = slam2.track(F(1, np.eye(4), INTR))
+    assert res2.diverged and "non-finite" in res2.reason and np.all(np.isfinite(res2.pose_c2w))
+
+
+def test_sampling_respects_masks_and_keyframe_usable_flags():
+    cfg = tiny_config(**{"mapping.first_iters": 2})
+    slam = SLAM(cfg, INTR, torch.device("cpu"))
+    f0 = F(0, np.eye(4), INTR)
+    mask = np.ones((INTR.height, INTR.width), bool)
+    mask[:, : INTR.width // 2] = False
+    ids = np.arange(INTR.height * INTR.width, dtype=np.int32).reshape(INTR.height, INTR.width)
+    slam.track(f0, mask)
+    valid = valid_pixels(f0.depth, mask, cfg.tracking.ignore_border)
+    assert np.all(mask.reshape(-1)[slam._sample(valid, 5000)])
+    slam.map(f0, mask, instance_ids=ids)
+    kf = slam.keyframes[0]
+    flat = kf.pixels[:, 1] * INTR.width + kf.pixels[:, 0]
+    assert np.array_equal(kf.usable, mask.reshape(-1)[flat]) and kf.usable.any() and not kf.usable.all()
+    assert np.array_equal(kf.instance_ids, flat.astype(np.int32))
+    cur = slam._prepare(F(1, np.eye(4), INTR), mask)
+    kfi, curi = slam.ba_ray_indices(cur, 4, 400)
+    assert len(kfi) and np.all(kf.usable[kfi]) and np.all(mask.reshape(-1)[curi])
+    kf.usable[:] = False  # the dynamic module forgets every stored ray
+    kfi, curi = slam.ba_ray_indices(cur, 4, 400)
+    assert len(kfi) == 0 and len(curi) == 4 * 400
+
+
+def test_state_dict_round_trip_and_resume_equality():
+    cfg = tiny_config(**{"mapping.first_iters": 20, "tracking.iters": 4, "mapping.iters": 3,
+                         "mapping.every": 2, "mapping.keyframe_every": 2})
+    poses = trajectory(5, step=0.01)
+    frames = [F(i, p, INTR) for i, p in enumerate(poses)]
+    torch.manual_seed(0)
+    a = SLAM(cfg, INTR, torch.device("cpu"))
+    for f in frames:
+        a.process(f)
+    b = SLAM(cfg, INTR, torch.device("cpu"))
+    for f in frames[:3]:
+        b.process(f)
+    buf = io.BytesIO()
+    torch.save(b.state_dict(), buf)
+    buf.seek(0)
+    c = SLAM(cfg, INTR, torch.device("cpu"))
+    c.load_state_dict(torch.load(buf, weights_only=False))
+    assert len(c.keyframes) == len(b.keyframes) and np.allclose(c.trajectory(), b.trajectory())
+    for f in frames[3:]:
+        c.process(f)
+    ta, tc = a.trajectory(), c.trajectory()
+    assert ta.shape == (5, 4, 4)
+    assert np.allclose(ta, tc, atol=1e-6), np.abs(ta - tc).max()
