@@ -1,6 +1,7 @@
 """Running a sequence end to end into a run folder (layout in DEVELOPING.md).
 
-``run_sequence`` opens the sequence, builds the SLAM system, processes every frame (static mode),
+``run_sequence`` opens the sequence, builds the SLAM system, processes every frame (static mode:
+Co-SLAM; dynamic mode: the motion module of ``run/dynamic.py`` decides which pixels are static),
 writes checkpoints every ``run.checkpoint_every`` frames and at the end the trajectory, mesh,
 timing and run.json.  Every file is written atomically; run.json says ``completed`` only at the end.
 """
@@ -25,8 +26,8 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
 
 MODES = ("static", "dynamic")
-# Flipped when the motion module is wired into the loop (dynslam_cli.motion).
-DYNAMIC_MODE_AVAILABLE = False
+# The motion module (dynslam_cli.motion) is wired into the loop by run/dynamic.py.
+DYNAMIC_MODE_AVAILABLE = True
 
 
 @dataclass
@@ -133,11 +134,12 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
     return write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def _save_checkpoint(path: Path, slam, next_frame: int, timings: dict, cfg_yaml: str) -> None:
+def _save_checkpoint(path: Path, slam, next_frame: int, timings: dict, cfg_yaml: str, dynamic=None) -> None:
     import torch
 
     state = {"slam": slam.state_dict(), "next_frame": next_frame, "timings": timings, "config": cfg_yaml,
-             "torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state(), "py_rng": random.getstate()}
+             "torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state(), "py_rng": random.getstate(),
+             "dynamic": None if dynamic is None else dynamic.state_dict()}
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
@@ -203,10 +205,20 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
 
     seed_everything(int(cfg.run.seed))
     slam = SLAM(cfg, seq.intrinsics, device, bounds=sequence_bounds(cfg, seq))
+    loop = None
+    if mode == "dynamic":
+        from dynslam_cli.run.dynamic import DynamicLoop
+
+        loop = DynamicLoop(cfg, seq.intrinsics, slam, device, out / "masks" if cfg.run.save_masks else None)
     timings: dict = {"track": [], "map": [], "frame": []}
+    if loop is not None:
+        timings = {k: [] for k in ("segment", "encode", "classify", "track", "render", "check", "update", "map", "frame")}
+    updates_path = out / "classifier_updates.jsonl"
     start_frame = 0
     if state is not None:
         slam.load_state_dict(state["slam"])
+        if loop is not None:
+            loop.load_state_dict(state["dynamic"])
         timings = state["timings"]
         start_frame = int(state["next_frame"])
         torch.set_rng_state(state["torch_rng"])
@@ -223,20 +235,31 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
     try:
         for i in range(start_frame, n):
             frame = seq[i]
-            r = slam.process(frame)
-            timings["track"].append(r.track.ms)
-            timings["map"].append(0.0 if r.map is None else r.map.ms)
-            timings["frame"].append(r.ms)
+            if loop is None:
+                r = slam.process(frame)
+                step = {"track": r.track.ms, "map": 0.0 if r.map is None else r.map.ms, "frame": r.ms,
+                        "_loss": r.track.loss}
+            else:
+                step = loop.process(frame, seq.stamps[i])
+            for k in timings:
+                timings[k].append(float(step[k]))
             processed += 1
             if bar is not None:
                 el = time.perf_counter() - t_run
-                bar.set_postfix(fps=f"{processed / el:.2f}", loss=f"{r.track.loss:.3f}")
+                post = {"fps": f"{processed / el:.2f}", "loss": f"{step['_loss']:.3f}"}
+                if loop is not None:
+                    post.update(dyn=step["_dynamic"], updates=len(loop.records))
+                bar.set_postfix(post)
                 bar.update(1)
             done = i + 1
             if cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n:
-                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml)
+                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml, loop)
+                if loop is not None:
+                    loop.write_updates(updates_path)
             if cfg.run.stop_after > 0 and processed >= cfg.run.stop_after and done < n:
-                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml)
+                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml, loop)
+                if loop is not None:
+                    loop.write_updates(updates_path)
                 meta.update(status="interrupted", error=f"stopped after {processed} frames (run.stop_after)")
                 write_json_atomic(run_json, meta)
                 return RunResult("interrupted", out, done, 0.0, {"run": run_json, "checkpoint": ckpt})
@@ -260,6 +283,9 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
             "median_ms": {k: float(np.median(v)) if len(v) else 0.0 for k, v in timings.items()},
             "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in timings.items()},
         }
+        if loop is not None:
+            paths["updates"] = loop.write_updates(updates_path)
+            timing["classifier_updates"] = len(loop.records)
         paths["timing"] = write_json_atomic(out / "timing.json", timing)
         if slam.events:
             write_json_atomic(out / "tracking_events.json", slam.events)

@@ -1,0 +1,151 @@
+"""One frame of dynamic mode: the paper's 'learn to memorize and to forget' loop.
+
+Per frame: segment, encode and classify the instances (motion module) → track on the static
+pixels → render the map at the tracked pose and run the bidirectional inconsistency check → on a
+contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
+map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
+the keyframe's rays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from dynslam_cli.utils.io import atomic_path, write_text_atomic
+
+
+class DynamicLoop:
+    """Drives a :class:`~dynslam_cli.slam.system.SLAM` with a
+    :class:`~dynslam_cli.motion.module.MotionModule` frame by frame."""
+
+    def __init__(self, cfg, intrinsics, slam, device, mask_dir: Optional[Path] = None):
+        from dynslam_cli.motion.module import MotionModule
+
+        self.cfg = cfg
+        self.slam = slam
+        self.mm = MotionModule(cfg, intrinsics, device)
+        self.mask_dir = mask_dir
+        self.records: list[dict] = []
+        self.width = int(intrinsics.width)
+        self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
+
+    # ------------------------------------------------------------------ per frame
+    def _guess(self, frame) -> np.ndarray:
+        if self.slam.n_frames == 0:
+            gt = getattr(frame, "pose_c2w", None)
+            return np.array(gt, np.float64) if gt is not None else np.eye(4)
+        return self.slam._initial_guess()
+
+    def _refresh_keyframes(self) -> int:
+        """Recompute every keyframe's usable rays from the current classifier; returns rays masked."""
+        masked = 0
+        for kf in self.slam.keyframes:
+            if kf.frame_id not in self.mm.keyframes:
+                continue
+            dyn_ids = self.mm.keyframe_dynamic_ids(kf.frame_id)
+            kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
+            masked += int((~kf.usable).sum())
+        return masked
+
+    def checkable_depth(self, depth: np.ndarray, pose_c2w: np.ndarray, step: int = 4) -> np.ndarray:
+        """The observed depth with the pixels the map cannot judge set to 0 (invalid):
+
+        - pixels within 2 px of a depth discontinuity (relative jump > 5 %), where a one-pixel
+          misalignment between the reduced-resolution render and the observation reads as metres;
+        - pixels whose 3-D point lies outside the view frustum of every keyframe: newly revealed
+          space the map never observed, whose rendered depth means nothing.
+        """
+        import cv2
+
+        d = depth.astype(np.float32)
+        valid = d > 0
+        pad = np.pad(d, 1, mode="edge")
+        jump = np.zeros_like(valid)
+        for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
+            nb = pad[dy:dy + d.shape[0], dx:dx + d.shape[1]]
+            jump |= (np.abs(nb - d) > 0.05 * np.maximum(d, nb)) & (nb > 0) & valid
+            jump |= valid & (nb <= 0)
+        edge = cv2.dilate(jump.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        out = np.where(valid & ~edge, d, 0.0).astype(np.float32)
+        kfs = self.slam.keyframes
+        if not kfs:
+            return out
+        intr = self.slam.intr
+        H, W = d.shape
+        vs, us = np.mgrid[0:H:step, 0:W:step]
+        z = d[::step, ::step]
+        pts = np.stack([(us - intr.cx) / intr.fx * z, (vs - intr.cy) / intr.fy * z, z], -1).reshape(-1, 3)
+        world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+        seen = np.zeros(len(world), bool)
+        for kf in kfs[-self.frustum_keyframes:]:
+            T = np.linalg.inv(kf.pose_c2w)
+            pc = world @ T[:3, :3].T + T[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
+                v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
+            seen |= (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        seen_full = cv2.resize(seen.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+        out[~seen_full] = 0.0
+        return out
+
+    frustum_keyframes = 20  # keyframes whose frusta count as 'observed space' for the check
+
+    def process(self, frame, stamp: str) -> dict:
+        """Process one frame; returns the per-component timings (ms) and what happened."""
+        t0 = time.perf_counter()
+        inst = self.mm.observe(frame, self._guess(frame))
+        tr = self.slam.track(frame, inst.static_mask)
+        t_track = tr.ms
+        t_render = 0.0
+        record = None
+        if self.slam.n_frames > 1:  # the map holds something to compare with from frame 1 on
+            t1 = time.perf_counter()
+            scale = min(1.0, self.mm.m.check_width / float(self.width))
+            r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
+            t_render = (time.perf_counter() - t1) * 1e3
+            judged = dataclasses.replace(frame, depth=self.checkable_depth(frame.depth, tr.pose_c2w))
+            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb)
+        masked = None
+        if record is not None:
+            rec = record.to_json()
+            rec["timestamp"] = stamp
+            masked = self._refresh_keyframes()
+            rec["keyframe_rays_masked"] = masked
+            self.records.append(rec)
+        n_kf = len(self.slam.keyframes)
+        mr = self.slam.map(frame, inst.static_mask, inst.ids)
+        if len(self.slam.keyframes) > n_kf:
+            self.mm.register_keyframe(self.slam.keyframes[-1].frame_id, inst)
+        dyn_mask = inst.dynamic_mask()
+        self.last_masks = dyn_mask
+        if self.mask_dir is not None:
+            import cv2
+
+            with atomic_path(self.mask_dir / f"{stamp}.png") as tmp:
+                if not cv2.imwrite(str(tmp), dyn_mask.astype(np.uint8) * 255):
+                    raise OSError(f"cannot write mask {self.mask_dir / f'{stamp}.png'}")
+        tm = inst.timings
+        return {
+            "segment": tm.get("segment", 0.0), "encode": tm.get("encode", 0.0),
+            "classify": tm.get("classify", 0.0), "track": t_track, "render": t_render,
+            "check": tm.get("check", 0.0), "update": tm.get("update", 0.0),
+            "map": 0.0 if mr is None else mr.ms, "frame": (time.perf_counter() - t0) * 1e3,
+            "_loss": tr.loss, "_dynamic": int(inst.dynamic.sum()), "_updated": record is not None,
+        }
+
+    # ------------------------------------------------------------------ outputs and state
+    def write_updates(self, path: Path) -> Path:
+        return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records))
+
+    def state_dict(self) -> dict:
+        return {"motion": self.mm.state_dict(), "records": list(self.records)}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.mm.load_state_dict(d["motion"])
+        self.records = list(d["records"])

@@ -1,0 +1,112 @@
+"""Dynamic mode end to end (motion module wired into the SLAM loop) and its pieces."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dynslam_cli.cli import app
+from dynslam_cli.run.dynamic import DynamicLoop
+
+TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
+        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20", "--set", "mapping.first_rays=256",
+        "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
+        "--set", "mapping.n_rays=256", "--set", "tracking.ignore_border=2", "--set", "run.threads=1",
+        "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2",
+        "--set", "motion.encoder=color-hist", "--set", "motion.check_width=48"]
+
+
+@pytest.fixture(scope="module")
+def walker(tmp_path_factory):
+    from dynslam_cli.synth.config import SynthConfig
+    from dynslam_cli.synth.render import render_preset
+
+    out = tmp_path_factory.mktemp("synth") / "walker"
+    render_preset("walker", out, SynthConfig(width=96, height=72, frames=10, seed=3), progress=False)
+    return out
+
+
+@pytest.fixture(autouse=True, scope="module")
+def restore_threads():
+    old = torch.get_num_threads()
+    yield
+    torch.set_num_threads(old)
+
+
+def _traj(path):
+    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    return np.array([[float(v) for v in r] for r in rows])
+
+
+def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
+    out = tmp_path / "dyn"
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out),
+                                   "--save-masks", "-q"] + TINY)
+    assert res.exit_code == 0, res.output
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["status"] == "completed" and meta["mode"] == "dynamic"
+    stamps = [ln.split()[0] for ln in (walker / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
+    masks = sorted(p.stem for p in (out / "masks").glob("*.png"))
+    assert masks == sorted(stamps)
+    timing = json.loads((out / "timing.json").read_text())
+    for k in ("segment", "encode", "track", "render", "check", "update", "map", "frame"):
+        assert k in timing["median_ms"], k
+    lines = (out / "classifier_updates.jsonl").read_text().splitlines()
+    assert timing["classifier_updates"] == len(lines)
+    for ln in lines:
+        rec = json.loads(ln)
+        assert {"frame", "labels", "loss_before", "loss_after", "replay_size", "keyframe_rays_masked"} <= set(rec)
+        assert 1 <= rec["frame"] < 10
+    assert _traj(out / "traj_est.txt").shape == (10, 8)
+
+
+def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
+    full, part = tmp_path / "full", tmp_path / "part"
+    r1 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(full), "-q"] + TINY)
+    assert r1.exit_code == 0, r1.output
+    r2 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(part), "-q",
+                                  "--set", "run.stop_after=5"] + TINY)
+    assert r2.exit_code == 0, r2.output
+    assert json.loads((part / "run.json").read_text())["status"] == "interrupted"
+    r3 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(part), "-q",
+                                  "--resume", "--set", "run.stop_after=5"] + TINY)
+    assert r3.exit_code == 0, r3.output
+    # the resumed call has its own stop_after budget: 5 more frames finish the 10-frame clip
+    assert json.loads((part / "run.json").read_text())["status"] == "completed"
+    np.testing.assert_allclose(_traj(part / "traj_est.txt"), _traj(full / "traj_est.txt"), atol=1e-6)
+    assert (part / "classifier_updates.jsonl").read_text() == (full / "classifier_updates.jsonl").read_text()
+
+
+def _bare_loop(keyframes, intr):
+    loop = DynamicLoop.__new__(DynamicLoop)
+    loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr)
+    return loop
+
+
+def test_checkable_depth_drops_edges_and_unseen_space():
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[20:30, 20:30] = 1.0  # a box in front of a wall
+    kf = SimpleNamespace(pose_c2w=np.eye(4))
+    out = _bare_loop([kf], intr).checkable_depth(depth, np.eye(4), step=1)
+    assert out[25, 25] == 1.0 and out[5, 5] == 2.0  # interiors kept
+    assert out[20, 25] == 0 and out[19, 25] == 0 and out[25, 30] == 0  # both sides of the step dropped
+    # the camera moved 1 m to the right: what it sees on its right was never in a keyframe's view
+    moved = np.eye(4)
+    moved[0, 3] = 1.0
+    out2 = _bare_loop([kf], intr).checkable_depth(depth, moved, step=1)
+    assert out2[5, 5] > 0 and np.all(out2[:, -5:] == 0)
+
+
+def test_refresh_keyframes_masks_rays_of_dynamic_instances():
+    kfs = [SimpleNamespace(frame_id=0, instance_ids=np.array([0, 1, 2, 2, -1]), usable=np.ones(5, bool)),
+           SimpleNamespace(frame_id=5, instance_ids=np.array([1, 1, 0]), usable=np.zeros(3, bool))]
+    loop = _bare_loop(kfs, None)
+    dyn = {0: np.array([2]), 5: np.array([], np.int32)}
+    loop.mm = SimpleNamespace(keyframes=dyn, keyframe_dynamic_ids=lambda k: dyn[k])
+    assert loop._refresh_keyframes() == 2
+    assert kfs[0].usable.tolist() == [True, True, False, False, True]
+    assert kfs[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again
