@@ -110,3 +110,15 @@ def test_refresh_keyframes_masks_rays_of_dynamic_instances():
     assert loop._refresh_keyframes() == 2
     assert kfs[0].usable.tolist() == [True, True, False, False, True]
     assert kfs[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again
+
+
+def test_closest_rendered_forgives_blurred_edges_not_movers():
+    ren = np.full((20, 20), 3.0, np.float32)
+    ren[5:15, 5:10] = 1.0  # the map's object, one pixel narrower than the observation
+    obs = np.full((20, 20), 3.0, np.float32)
+    obs[5:15, 5:11] = 1.0
+    obs[2:6, 14:18] = 0.8  # a mover in front of the wall
+    out = DynamicLoop.closest_rendered(ren, obs, radius=1)
+    assert out[8, 10] == 1.0  # edge pixel: a neighbour agrees
+    assert out[3, 16] == 3.0  # mover interior: nothing near agrees, still 2.2 m inconsistent
+    np.testing.assert_array_equal(DynamicLoop.closest_rendered(ren, obs, radius=0), ren)

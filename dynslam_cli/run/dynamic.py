@@ -33,6 +33,8 @@ class DynamicLoop:
         self.mask_dir = mask_dir
         self.records: list[dict] = []
         self.width = int(intrinsics.width)
+        self.check_radius = int(cfg.run.check_radius)
+        self.warmup = int(cfg.run.check_warmup)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -94,6 +96,30 @@ class DynamicLoop:
         out[~seen_full] = 0.0
         return out
 
+    @staticmethod
+    def closest_rendered(rendered: np.ndarray, observed: np.ndarray, radius: int = 1) -> np.ndarray:
+        """Per pixel, the rendered depth within ``radius`` pixels that is closest to the observed one.
+
+        The map is smoother than the sensor (object edges blur into the background at reduced
+        resolution), so a pixel only counts as inconsistent when *no* nearby rendered depth agrees
+        with the observation: a mover's interior still differs everywhere, a blurred edge does not.
+        """
+        import cv2
+
+        h, w = rendered.shape
+        obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        pad = np.pad(rendered.astype(np.float32), radius, mode="edge")
+        best = rendered.astype(np.float32).copy()
+        err = np.where(best > 0, np.abs(best - obs), np.inf)
+        for dy in range(2 * radius + 1):
+            for dx in range(2 * radius + 1):
+                cand = pad[dy:dy + h, dx:dx + w]
+                e = np.where(cand > 0, np.abs(cand - obs), np.inf)
+                better = e < err
+                best[better] = cand[better]
+                err[better] = e[better]
+        return np.where(obs > 0, best, rendered).astype(np.float32)
+
     frustum_keyframes = 20  # keyframes whose frusta count as 'observed space' for the check
 
     def process(self, frame, stamp: str) -> dict:
@@ -104,12 +130,14 @@ class DynamicLoop:
         t_track = tr.ms
         t_render = 0.0
         record = None
-        if self.slam.n_frames > 1:  # the map holds something to compare with from frame 1 on
+        if self.slam.n_frames > max(1, self.warmup):  # a map built from one frame is too immature to judge
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
             t_render = (time.perf_counter() - t1) * 1e3
             judged = dataclasses.replace(frame, depth=self.checkable_depth(frame.depth, tr.pose_c2w))
+            if self.check_radius > 0:
+                r_depth = self.closest_rendered(r_depth, judged.depth, self.check_radius)
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb)
         masked = None
         if record is not None:
