@@ -14,8 +14,13 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $@
 
+# The tests also cover the optional Ray executor, so they install the `ray` extra.
+$(VENV)/.installed-ray: $(VENV)/.installed
+	$(PY) -m pip install -q -e ".[test,ray]"
+	touch $@
+
 # The test suite; HOME goes to a temp folder because evo and onnxruntime write there on import.
-test: install
+test: install $(VENV)/.installed-ray
 	@tmp=$$(mktemp -d); HOME=$$tmp $(TESTENV) $(PY) -m pytest -q $(PYTEST_ARGS); rc=$$?; rm -rf $$tmp; exit $$rc
 
 # The main job on the built-in synthetic default scene.

@@ -213,7 +213,7 @@ def execute_cell(task: dict) -> dict:
                              frames=task.get("frames"))
         runner = task.get("runner") or DEFAULT_RUNNER
         run_fn = _load_callable(runner) if isinstance(runner, str) else runner
-        result = run_fn(cell["seq"], cfg, out_dir, resume=True, progress=False)
+        result = run_fn(cell["seq"], cfg, out_dir, resume=(out_dir / "checkpoint.pt").is_file(), progress=False)
         status = getattr(result, "status", None) or runs.read_run_json(out_dir).get("status")
         if status != "completed":
             raise DynslamError(f"run of cell {cell['id']} ended with status {status}")

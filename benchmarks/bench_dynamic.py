@@ -1,0 +1,94 @@
+"""Dynamic vs static mode: ATE (beside the still-camera ATE), motion-mask IoU, classifier updates,
+fps and per-component ms, on synthetic presets and on the real Bonn crowd clip in ../shared.
+
+    .venv/bin/python benchmarks/bench_dynamic.py                       # the issue's full set (slow: hours on 2 cores)
+    .venv/bin/python benchmarks/bench_dynamic.py --presets walker,crowd --frames 80 --size 320x240 --no-bonn
+
+Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete unless --fresh); prints a
+Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2 threads far slower there).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+sys.path.insert(0, str(REPO))
+
+
+def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> dict:
+    from dynslam_cli.commands._common import resolve_config
+    from dynslam_cli.eval.ate import evaluate_run_ate
+    from dynslam_cli.eval.masks import evaluate_run_masks
+    from dynslam_cli.run.runner import run_sequence
+
+    done = out / "run.json"
+    if fresh and out.exists():
+        shutil.rmtree(out)
+    if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
+        cfg = resolve_config(spec, None, sets + [f"run.mode={mode}", "run.save_masks=true"])
+        run_sequence(spec, cfg, out_dir=out, progress=True)
+    ate = evaluate_run_ate(out, plot=False)
+    row = {"case": spec, "mode": mode, "ate_cm": 100 * ate.rmse_m, "still_cm": 100 * ate.rmse_still_m}
+    timing = json.loads((out / "timing.json").read_text())
+    row["fps"] = timing["fps"]
+    row["fps_after_first"] = timing.get("fps_after_first", float("nan"))
+    row["updates"] = timing.get("classifier_updates", "—")
+    row["median_ms"] = timing["median_ms"]
+    row["iou"] = "—"
+    if mode == "dynamic" and spec.startswith("synth/"):
+        m = evaluate_run_masks(out)
+        row["iou"] = m.mean_iou_moving
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", default="walker,crowd,kidnap,balloon,tracking")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--size", default="640x480")
+    ap.add_argument("--modes", default="dynamic,static")
+    ap.add_argument("--no-bonn", action="store_true")
+    ap.add_argument("--bonn-frames", type=int, default=150)
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], help="extra config override (repeatable)")
+    ap.add_argument("--data-root", default=str(Path(tempfile.gettempdir()) / "dynslam-bench-data"))
+    ap.add_argument("--out", default=str(REPO / "results" / "bench" / "dynamic"))
+    ap.add_argument("--fresh", action="store_true")
+    a = ap.parse_args()
+    w, h = (int(v) for v in a.size.lower().split("x"))
+    base = [f"data.root={a.data_root}", f"run.threads={a.threads}"] + a.set
+    cases = []
+    for p in [p for p in a.presets.split(",") if p]:
+        cases.append((f"synth/{p}", base + [f"synth.width={w}", f"synth.height={h}", f"synth.frames={a.frames}"],
+                      f"synth-{p}-{w}x{h}-{a.frames}f"))
+    bonn = REPO.parent / "shared" / "data" / "bonn_crowd_150_449_s2"
+    if not a.no_bonn:
+        if bonn.is_dir():
+            cases.append((str(bonn), base + [f"data.frames={a.bonn_frames}"], f"bonn-crowd-clip-{a.bonn_frames}f"))
+        else:
+            print(f"skipping the Bonn clip: {bonn} is absent", file=sys.stderr)
+    rows = []
+    for spec, sets, name in cases:
+        for mode in a.modes.split(","):
+            rows.append(run_case(spec, mode, Path(a.out) / name / mode, sets, a.fresh))
+    comps = ["segment", "encode", "track", "render", "check", "update", "map", "frame"]
+    print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | " + " | ".join(comps) + " |")
+    print("|---" * (8 + len(comps)) + "|")
+    for r in rows:
+        iou = f"{r['iou']:.3f}" if isinstance(r["iou"], float) else "—"
+        ms = " | ".join(f"{r['median_ms'].get(c, float('nan')):.0f}" if c in r["median_ms"] else "—" for c in comps)
+        print(f"| {r['case']} | {r['mode']} | {r['ate_cm']:.2f} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
+              f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {ms} |")
+
+
+if __name__ == "__main__":
+    main()
