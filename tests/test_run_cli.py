@@ -74,8 +74,10 @@ def test_resume_gives_the_same_trajectory(clip, tmp_path):
 def test_bad_input_exits_2_with_one_line(clip, tmp_path):
     res = _run(["run", "--seq", str(tmp_path / "missing"), "--mode", "static", "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and res.output.strip().startswith("error:") and len(res.output.strip().splitlines()) == 1
-    res = _run(["run", "--seq", str(clip), "--mode", "dynamic", "--out", str(tmp_path / "o")])
-    assert res.exit_code == 2 and "dynamic mode is not available yet" in res.output
+    res = _run(["run", "--seq", str(clip), "--mode", "moving", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "--mode must be static or dynamic" in res.output
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o"), "--set", "tracking.iterz=3"])
+    assert res.exit_code == 2 and "unknown config key 'tracking.iterz'" in res.output
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o"), "--device", "tpu"])
     assert res.exit_code == 2 and "unknown device" in res.output
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o2"), "--resume"])

@@ -18,6 +18,11 @@ class TrackingConfig:
     keep_best: bool = opt(True, "Return the lowest-loss pose seen (else the last iterate; Co-SLAM's TUM config uses the last).")
     resample_rays: bool = opt(True, "Draw new rays every iteration (Co-SLAM); false = one ray set per frame, so losses compare.")
     min_pixels: int = opt(50, "Fewer usable pixels than this: tracking is skipped (constant-velocity pose, logged).")
+    icp_init: bool = opt(True, "Refine the initial guess by coarse-to-fine point-to-plane ICP of the depth against the previous frame's depth (starting from the constant-velocity guess).")
+    icp_factors: list = opt([8, 4, 2], "ICP pyramid: downsampling factors, coarse to fine (640x480 -> 80x60, 160x120, 320x240).")
+    icp_iters: list = opt([8, 5, 3], "Gauss-Newton iterations per ICP level.")
+    icp_max_dist: float = opt(0.1, "ICP: associations farther apart than this (m) are rejected.")
+    icp_min_fraction: float = opt(0.2, "ICP result is ignored (constant-velocity guess kept) when fewer of the current points associate.")
 
 
 @dataclass

@@ -17,6 +17,7 @@ import torch
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import backproject, pixel_dirs
+from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses, smoothness_loss
 from dynslam_cli.map.model import NeuralMap
@@ -106,6 +107,8 @@ class SLAM:
                                                 intrinsics.cx, intrinsics.cy)).to(self.device)
         self._cur: Optional[_Current] = None
         self._kf_cache = None  # concatenated keyframe rays (torch) and owners
+        self._prev_depth: Optional[np.ndarray] = None  # last tracked frame's (masked) depth, ICP reference
+        self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -150,11 +153,25 @@ class SLAM:
             p.requires_grad_(on)
 
     # ------------------------------------------------------------------ tracking
-    def _initial_guess(self) -> np.ndarray:
-        if len(self.poses) >= 2 and self.cfg.tracking.const_velocity:
-            p1, p2 = self.poses[-1], self.poses[-2]
-            return orthonormalize(p1 @ inv_np(p2) @ p1)
-        return self.poses[-1].copy()
+    def _initial_guess(self, cur: Optional[_Current] = None) -> np.ndarray:
+        tc = self.cfg.tracking
+        p1 = self.poses[-1]
+        rel = np.eye(4)  # previous camera <- current camera
+        if len(self.poses) >= 2 and tc.const_velocity:
+            rel = inv_np(self.poses[-2]) @ p1
+        self.last_icp = None
+        if tc.icp_init and cur is not None and self._prev_depth is not None:
+            res = icp_depth(self._prev_depth, self._masked_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
+                            init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
+                            max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction)
+            self.last_icp = res
+            if res.ok and float(np.linalg.norm(res.T[:3, 3] - rel[:3, 3])) <= tc.max_jump:
+                rel = res.T
+        return orthonormalize(p1 @ rel)
+
+    @staticmethod
+    def _masked_depth(cur: _Current) -> np.ndarray:
+        return cur.depth_np if cur.mask is None else np.where(cur.mask, cur.depth_np, 0).astype(np.float32)
 
     def track(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
         t0 = time.perf_counter()
@@ -168,7 +185,7 @@ class SLAM:
                 self._build_model(b)
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
-        init = self._initial_guess()
+        init = self._initial_guess(cur)
         if len(cur.valid) < tc.min_pixels or tc.iters <= 0:
             reason = f"only {len(cur.valid)} usable pixels" if tc.iters > 0 else ""
             if reason:
@@ -229,6 +246,7 @@ class SLAM:
 
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
+        self._prev_depth = self._masked_depth(cur) if self.cfg.tracking.icp_init else None
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
         kf_id = (cur.idx // ke) * ke
@@ -501,6 +519,7 @@ class SLAM:
             "events": list(self.events),
             "rng": self.rng.bit_generator.state,
             "tgen": self.tgen.get_state().cpu(),
+            "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -519,3 +538,5 @@ class SLAM:
         self.tgen.set_state(d["tgen"])
         self._cur = None
         self._kf_cache = None
+        pd = d.get("prev_depth")
+        self._prev_depth = None if pd is None else np.asarray(pd, np.float32)
