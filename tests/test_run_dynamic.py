@@ -51,6 +51,8 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
     stamps = [ln.split()[0] for ln in (walker / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
     masks = sorted(p.stem for p in (out / "masks").glob("*.png"))
     assert masks == sorted(stamps)
+    renders = sorted(p.name for p in (out / "renders").glob("*_depth.png"))
+    assert renders and all(r[: -len("_depth.png")] in stamps for r in renders)
     timing = json.loads((out / "timing.json").read_text())
     for k in ("segment", "encode", "track", "render", "check", "update", "map", "frame"):
         assert k in timing["median_ms"], k

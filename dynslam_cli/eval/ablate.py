@@ -121,6 +121,7 @@ def build_grid(seqs: list[str], modes: list[str], encoders: list[str], segmenter
         ov = [f"run.mode={mode}", f"run.seed={seed}"]
         axes = {"seq": seq, "mode": mode, "seed": seed}
         if mode == "dynamic":
+            ov.append("run.save_masks=true")  # eval-masks scores them where the scene has ground truth
             if enc is not None:
                 parts.append(f"enc-{enc}")
                 ov.append(f"motion.encoder={enc}")

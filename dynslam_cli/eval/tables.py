@@ -368,6 +368,13 @@ def plot_updates(recs: list[RunRecord], out: Path) -> list[Path]:
     return paths
 
 
+def _imread(path: Path, flags: int):
+    """cv2.imread without its warning for files a run did not write (None then)."""
+    import cv2
+
+    return cv2.imread(str(path), flags) if path.is_file() else None
+
+
 def montage(run_dir: Path, out_png: Path, frames: Optional[list[str]] = None, n: int = 4) -> Optional[Path]:
     """Rows of input RGB / rendered depth / motion mask at chosen mask timestamps (None when no masks)."""
     import cv2
@@ -391,8 +398,8 @@ def montage(run_dir: Path, out_png: Path, frames: Optional[list[str]] = None, n:
         rgb_p = sp / "rgb" / f"{ts}.png" if sp is not None else None
         panels = [
             ("input", cv2.imread(str(rgb_p))[..., ::-1] if rgb_p is not None and rgb_p.is_file() else None, None),
-            ("rendered depth", cv2.imread(str(run_dir / "renders" / f"{ts}_depth.png"), cv2.IMREAD_UNCHANGED), "viridis"),
-            ("motion mask", cv2.imread(str(mdir / f"{ts}.png"), cv2.IMREAD_GRAYSCALE), "gray"),
+            ("rendered depth", _imread(run_dir / "renders" / f"{ts}_depth.png", cv2.IMREAD_UNCHANGED), "viridis"),
+            ("motion mask", _imread(mdir / f"{ts}.png", cv2.IMREAD_GRAYSCALE), "gray"),
         ]
         for ax, (title, img, cmap) in zip(row, panels, strict=False):
             ax.axis("off")

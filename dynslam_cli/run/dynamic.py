@@ -134,11 +134,15 @@ class DynamicLoop:
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
+            raw_depth = r_depth
             t_render = (time.perf_counter() - t1) * 1e3
             judged = dataclasses.replace(frame, depth=self.checkable_depth(frame.depth, tr.pose_c2w))
             if self.check_radius > 0:
                 r_depth = self.closest_rendered(r_depth, judged.depth, self.check_radius)
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb)
+            if self.mask_dir is not None:  # the rendered depth beside the masks (montage plots)
+                self._write_png(self.mask_dir.parent / "renders" / f"{stamp}_depth.png",
+                                np.clip(raw_depth * 5000.0, 0, 65535).astype(np.uint16))
         masked = None
         if record is not None:
             rec = record.to_json()
@@ -153,11 +157,7 @@ class DynamicLoop:
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:
-            import cv2
-
-            with atomic_path(self.mask_dir / f"{stamp}.png") as tmp:
-                if not cv2.imwrite(str(tmp), dyn_mask.astype(np.uint8) * 255):
-                    raise OSError(f"cannot write mask {self.mask_dir / f'{stamp}.png'}")
+            self._write_png(self.mask_dir / f"{stamp}.png", dyn_mask.astype(np.uint8) * 255)
         tm = inst.timings
         return {
             "segment": tm.get("segment", 0.0), "encode": tm.get("encode", 0.0),
@@ -168,6 +168,15 @@ class DynamicLoop:
         }
 
     # ------------------------------------------------------------------ outputs and state
+    @staticmethod
+    def _write_png(path: Path, image: np.ndarray) -> None:
+        import cv2
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            if not cv2.imwrite(str(tmp), image):
+                raise OSError(f"cannot write {path}")
+
     def write_updates(self, path: Path) -> Path:
         return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records))
 
