@@ -15,18 +15,12 @@ DEMO_SETS = ["synth.width=320", "synth.height=240", "synth.frames=100", "mapping
              "tracking.ignore_border=10"]
 
 
-def _available_mode(requested: Optional[str], cfg) -> str:
+def _mode(requested: Optional[str], cfg) -> str:
     from dynslam_cli.errors import DynslamError
 
     mode = requested or cfg.run.mode
     if mode not in ("static", "dynamic"):
         raise DynslamError(f"--mode must be static or dynamic, got '{mode}'")
-    if mode == "dynamic":
-        from dynslam_cli.run.runner import DYNAMIC_MODE_AVAILABLE
-
-        if not DYNAMIC_MODE_AVAILABLE:
-            raise DynslamError("dynamic mode is not available yet; use --mode static "
-                               "(or --set run.mode=static)")
     return mode
 
 
@@ -62,7 +56,7 @@ def register(app: typer.Typer) -> None:
         if save_masks:
             extra.append("run.save_masks=true")
         cfg = c.resolve_config(seq, config, list(sets or []) + extra, data_root, frames, start, stride)
-        cfg.run.mode = _available_mode(mode, cfg)
+        cfg.run.mode = _mode(mode, cfg)
 
         from dynslam_cli.run.runner import run_sequence
 
@@ -80,16 +74,11 @@ def register(app: typer.Typer) -> None:
         device: Optional[str] = typer.Option(None, "--device", help="auto, cpu or cuda."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     ) -> None:
-        """Render a small synthetic scene (first time only) and run SLAM on it with the best available mode."""
-        from dynslam_cli.errors import DynslamError
-
+        """Render a small synthetic scene (first time only) and run SLAM on it in dynamic mode."""
         spec = f"synth/{preset}"
         extra = list(DEMO_SETS) + ([f"run.device={device}"] if device else [])
         cfg = c.resolve_config(spec, None, extra, data_root)
-        try:
-            cfg.run.mode = _available_mode("dynamic", cfg)
-        except DynslamError:
-            cfg.run.mode = "static"
+        cfg.run.mode = "dynamic"
         from dynslam_cli.run.runner import run_sequence
 
         res = run_sequence(spec, cfg, out_dir=out, progress=not quiet)

@@ -19,6 +19,9 @@ class RunConfig:
     mesh_resolution: float = opt(0.02, "Marching-cubes voxel size (m).")
     results_root: str = opt("results/runs", "Folder under which run folders are created.")
     keep_checkpoint: bool = opt(False, "Keep checkpoint.pt after a completed run (it is removed by default).")
-    stop_after: int = opt(0, "Stop (status 'interrupted') after processing this many frames in this call; 0 = never. For tests of --resume.")
-    check_radius: int = opt(1, "Dynamic mode: a pixel is inconsistent only when no rendered depth within this many pixels (at check resolution) agrees with the observation; 0 = the plain per-pixel check.")
-    check_warmup: int = opt(5, "Dynamic mode: no inconsistency check before this frame (the map needs a keyframe and a bundle adjustment beyond frame 0 to judge anything).")
+    stop_after: int = opt(0, "Stop (status 'interrupted') after processing this many frames in this call; 0 = never. "
+                             "For tests of --resume.")
+    check_radius: int = opt(1, "Dynamic mode: a pixel is inconsistent only when no rendered depth within this many "
+                               "pixels (at check resolution) agrees with the observation; 0 = the plain per-pixel check.")
+    check_warmup: int = opt(5, "Dynamic mode: no inconsistency check before this frame (the map needs a keyframe "
+                               "and a bundle adjustment beyond frame 0 to judge anything).")

@@ -26,8 +26,6 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
 
 MODES = ("static", "dynamic")
-# The motion module (dynslam_cli.motion) is wired into the loop by run/dynamic.py.
-DYNAMIC_MODE_AVAILABLE = True
 
 
 @dataclass
@@ -164,8 +162,6 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
     mode = cfg.run.mode
     if mode not in MODES:
         raise DynslamError(f"run.mode must be static or dynamic, got '{mode}'")
-    if mode == "dynamic" and not DYNAMIC_MODE_AVAILABLE:
-        raise DynslamError("dynamic mode is not available yet; use --mode static")
     device = select_device(cfg.run.device)
     threads = set_threads(cfg.run.threads)
     seq = open_sequence(spec, cfg, progress=progress)
