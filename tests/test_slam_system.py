@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dynslam_cli.geometry.lie import se3_exp_np
-from dynslam_cli.slam.keyframes import valid_pixels
+from dynslam_cli.slam.keyframes import depth_edges, valid_pixels
 from dynslam_cli.slam.system import SLAM
 from dynslam_cli.slam.toyscene import TinyIntrinsics, render, tiny_config, trajectory
 
@@ -125,3 +125,59 @@ def test_state_dict_round_trip_and_resume_equality():
     ta, tc = a.trajectory(), c.trajectory()
     assert ta.shape == (5, 4, 4)
     assert np.allclose(ta, tc, atol=1e-6), np.abs(ta - tc).max()
+
+
+def _stepped(f):
+    """A toy frame whose right half is four times closer: a depth discontinuity at column 24."""
+    f.depth = f.depth.copy()
+    f.depth[:, 24:] *= 0.25
+    return f
+
+
+def test_depth_edges_mark_both_sides_of_a_step_and_holes():
+    d = np.full((10, 12), 2.0, np.float32)
+    d[:, 6:] = 1.0
+    d[8, 1] = 0.0
+    e = depth_edges(d, 0.05, 0)
+    assert e[:, 5].all() and e[:, 6].all() and not e[:, 3].any() and not e[:, 9].any()
+    assert e[7, 1] and e[8, 0] and not e[8, 1]  # the hole's valid neighbours, not the hole itself
+    assert depth_edges(d, 0.05, 2)[:, 3:9].all()
+    assert not depth_edges(np.full((5, 5), 2.0, np.float32), 0.05, 2).any()
+
+
+def test_edge_margin_keeps_tracking_and_keyframe_rays_off_depth_edges():
+    cfg = tiny_config(**{"tracking.edge_margin": 2, "mapping.edge_margin": 2, "mapping.first_iters": 2})
+    intr = TinyIntrinsics(48, 36, f=60.0)  # a narrow view: the box walls themselves are no edges
+    slam = SLAM(cfg, intr, torch.device("cpu"))
+    f = _stepped(F(0, np.eye(4), intr))
+    slam.track(f)
+    cur = slam._cur
+    kept = slam._without_edges(cur, cur.valid, 2)
+    cols = kept % intr.width
+    assert len(kept) < len(cur.valid) and not np.isin(cols, np.arange(21, 27)).any()
+    assert np.isin(np.arange(3, 18), np.unique(cols)).all()  # the rest of the frame is kept
+    slam.map(f)
+    assert not np.isin(slam.keyframes[0].pixels[:, 0], np.arange(21, 27)).any()
+    off = SLAM(tiny_config(**{"mapping.first_iters": 2}), intr, torch.device("cpu"))
+    off.track(f)
+    assert np.array_equal(off._without_edges(off._cur, off._cur.valid, 0), off._cur.valid)
+
+
+@pytest.mark.parametrize("iters,accum,steps", [(20, 5, 4), (7, 5, 2), (6, 1, 6)])
+def test_bundle_adjustment_steps_poses_once_per_accumulation(fitted, monkeypatch, iters, accum, steps):
+    cfg, state = fitted
+    cfg2 = tiny_config(**{"mapping.iters": iters, "mapping.pose_accum_steps": accum, "mapping.every": 1})
+    slam = _load(cfg2, state)
+    pose_steps = []
+    orig = torch.optim.Adam.step
+
+    def spy(self, *a, **k):
+        if any(p.dim() == 2 and p.shape[-1] == 6 for g in self.param_groups for p in g["params"]):
+            pose_steps.append(1)
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+    before = slam.poses[0].copy()
+    res = slam.process(F(1, se3_exp_np([0.01, 0, 0, 0, 0, 0]), INTR))
+    assert res.map is not None and res.map.ba and len(pose_steps) == steps
+    assert np.allclose(slam.poses[0], before)  # the first keyframe stays fixed

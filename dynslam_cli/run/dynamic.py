@@ -63,37 +63,14 @@ class DynamicLoop:
         - pixels whose 3-D point lies outside the view frustum of every keyframe: newly revealed
           space the map never observed, whose rendered depth means nothing.
         """
-        import cv2
+        from dynslam_cli.slam.keyframes import depth_edges, seen_by_keyframes
 
         d = depth.astype(np.float32)
-        valid = d > 0
-        pad = np.pad(d, 1, mode="edge")
-        jump = np.zeros_like(valid)
-        for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
-            nb = pad[dy:dy + d.shape[0], dx:dx + d.shape[1]]
-            jump |= (np.abs(nb - d) > 0.05 * np.maximum(d, nb)) & (nb > 0) & valid
-            jump |= valid & (nb <= 0)
-        edge = cv2.dilate(jump.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        out = np.where(valid & ~edge, d, 0.0).astype(np.float32)
+        out = np.where((d > 0) & ~depth_edges(d, 0.05, 2), d, 0.0).astype(np.float32)
         kfs = self.slam.keyframes
         if not kfs:
             return out
-        intr = self.slam.intr
-        H, W = d.shape
-        vs, us = np.mgrid[0:H:step, 0:W:step]
-        z = d[::step, ::step]
-        pts = np.stack([(us - intr.cx) / intr.fx * z, (vs - intr.cy) / intr.fy * z, z], -1).reshape(-1, 3)
-        world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
-        seen = np.zeros(len(world), bool)
-        for kf in kfs[-self.frustum_keyframes:]:
-            T = np.linalg.inv(kf.pose_c2w)
-            pc = world @ T[:3, :3].T + T[:3, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
-                v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
-            seen |= (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-        seen_full = cv2.resize(seen.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
-        out[~seen_full] = 0.0
+        out[~seen_by_keyframes(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step)] = 0.0
         return out
 
     @staticmethod

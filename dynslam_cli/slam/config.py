@@ -18,11 +18,16 @@ class TrackingConfig:
     keep_best: bool = opt(True, "Return the lowest-loss pose seen (else the last iterate; Co-SLAM's TUM config uses the last).")
     resample_rays: bool = opt(True, "Draw new rays every iteration (Co-SLAM); false = one ray set per frame, so losses compare.")
     min_pixels: int = opt(50, "Fewer usable pixels than this: tracking is skipped (constant-velocity pose, logged).")
-    icp_init: bool = opt(True, "Refine the initial guess by coarse-to-fine point-to-plane ICP of the depth against the previous frame's depth (starting from the constant-velocity guess).")
+    icp_init: bool = opt(True, "Refine the initial guess by coarse-to-fine point-to-plane ICP of the depth against the "
+                         "previous frame's depth (starting from the constant-velocity guess).")
     icp_factors: list = opt([8, 4, 2], "ICP pyramid: downsampling factors, coarse to fine (640x480 -> 80x60, 160x120, 320x240).")
     icp_iters: list = opt([8, 5, 3], "Gauss-Newton iterations per ICP level.")
     icp_max_dist: float = opt(0.1, "ICP: associations farther apart than this (m) are rejected.")
-    icp_min_fraction: float = opt(0.2, "ICP result is ignored (constant-velocity guess kept) when fewer of the current points associate.")
+    icp_min_fraction: float = opt(0.2, "ICP result is ignored (constant-velocity guess kept) when fewer of the current "
+                                  "points associate.")
+    edge_margin: int = opt(2, "Do not sample tracking rays within this many pixels of a depth discontinuity (a step "
+                           "of >5 % at 540 px focal length, or a hole): the map blurs edges, and on real depth they "
+                           "bias the pose; 0 = sample them.")
 
 
 @dataclass
@@ -36,6 +41,10 @@ class MappingConfig:
     lr_pose: float = opt(0.001, "Learning rate of keyframe poses.")
     first_iters: int = opt(1000, "Mapping iterations on the first frame.")
     first_rays: int = opt(2048, "Rays per mapping iteration on the first frame.")
+    edge_margin: int = opt(2, "Keyframe and current-frame mapping rays avoid pixels within this many pixels of a depth "
+                           "discontinuity; 0 = use them.")
     min_rays_current: int = opt(100, "At least this many of the BA rays come from the current frame (Co-SLAM min_pixels_cur).")
+    pose_accum_steps: int = opt(5, "Bundle adjustment steps the pose optimiser once every N iterations on the gradients "
+                                "summed over them (Co-SLAM pose_accum_step); the map steps every iteration.")
     optimize_current: bool = opt(True, "Also refine the current frame's pose in bundle adjustment (Co-SLAM optim_cur).")
     fix_first_pose: bool = opt(True, "Keep the first keyframe's pose fixed in bundle adjustment.")

@@ -52,3 +52,47 @@ def valid_pixels(depth: np.ndarray, mask: np.ndarray | None, border: int, need_d
             raise DynslamError(f"mask shape {m.shape} does not match the frame {h}x{w}")
         ok &= m.astype(bool)
     return np.flatnonzero(ok)
+
+
+def depth_edges(depth: np.ndarray, rel_jump: float = 0.05, dilate: int = 2) -> np.ndarray:
+    """Pixels within ``dilate`` px of a depth discontinuity: a relative step > ``rel_jump``
+    between 4-neighbours, or a valid pixel next to a missing one.  (H, W) bool."""
+    import cv2
+
+    d = np.asarray(depth, np.float32)
+    valid = d > 0
+    pad = np.pad(d, 1, mode="edge")
+    jump = np.zeros_like(valid)
+    for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
+        nb = pad[dy:dy + d.shape[0], dx:dx + d.shape[1]]
+        jump |= (np.abs(nb - d) > rel_jump * np.maximum(d, nb)) & (nb > 0) & valid
+        jump |= valid & (nb <= 0)
+    if dilate <= 0:
+        return jump
+    k = 2 * int(dilate) + 1
+    return cv2.dilate(jump.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+
+
+def seen_by_keyframes(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4) -> np.ndarray:
+    """Pixels whose back-projected 3-D point (at ``pose_c2w``) lies inside the view frustum of at
+    least one of ``keyframes``: space the map has observed.  Evaluated on every ``step``-th pixel
+    and upsampled (nearest).  (H, W) bool; all False when there are no keyframes."""
+    import cv2
+
+    d = np.asarray(depth, np.float32)
+    H, W = d.shape
+    if not keyframes:
+        return np.zeros((H, W), bool)
+    vs, us = np.mgrid[0:H:step, 0:W:step]
+    z = d[::step, ::step]
+    pts = np.stack([(us - intr.cx) / intr.fx * z, (vs - intr.cy) / intr.fy * z, z], -1).reshape(-1, 3)
+    world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+    seen = np.zeros(len(world), bool)
+    for kf in keyframes:
+        T = np.linalg.inv(kf.pose_c2w)
+        pc = world @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
+            v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
+        seen |= (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    return cv2.resize(seen.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0

@@ -21,8 +21,8 @@ from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses, smoothness_loss
 from dynslam_cli.map.model import NeuralMap
-from dynslam_cli.map.render import render_rays, sample_depths, sdf_weights
-from dynslam_cli.slam.keyframes import Keyframe, valid_pixels
+from dynslam_cli.map.render import render_rays, sample_depths
+from dynslam_cli.slam.keyframes import Keyframe, depth_edges, valid_pixels
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +169,26 @@ class SLAM:
                 rel = res.T
         return orthonormalize(p1 @ rel)
 
+    def _edges(self, cur: _Current, margin: int) -> np.ndarray:
+        """Depth-edge pixels of the current frame within ``margin`` px (cached per margin).
+
+        A step counts as an edge when it exceeds 5 % of the depth at a 540 px focal length (about
+        0.1 degrees per pixel; only surfaces seen at more than ~88 degrees step that much), scaled
+        with the pixel's angular size so that wide, low-resolution cameras do not see every
+        oblique wall as an edge."""
+        cache = cur.extra.setdefault("edges", {})
+        if margin not in cache:
+            cache[margin] = depth_edges(cur.depth_np, max(0.05, 27.0 / float(self.intr.fx)), margin)
+        return cache[margin]
+
+    def _without_edges(self, cur: _Current, pixels: np.ndarray, margin: int) -> np.ndarray:
+        """``pixels`` (flat indices) without depth-edge pixels, unless that leaves fewer than
+        tracking.min_pixels (then all of them)."""
+        if margin <= 0 or len(pixels) == 0:
+            return pixels
+        sub = pixels[~self._edges(cur, margin).reshape(-1)[pixels]]
+        return sub if len(sub) >= self.cfg.tracking.min_pixels else pixels
+
     @staticmethod
     def _masked_depth(cur: _Current) -> np.ndarray:
         return cur.depth_np if cur.mask is None else np.where(cur.mask, cur.depth_np, 0).astype(np.float32)
@@ -186,16 +206,17 @@ class SLAM:
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
         init = self._initial_guess(cur)
-        if len(cur.valid) < tc.min_pixels or tc.iters <= 0:
-            reason = f"only {len(cur.valid)} usable pixels" if tc.iters > 0 else ""
+        tvalid = self._without_edges(cur, cur.valid, tc.edge_margin)
+        if len(tvalid) < tc.min_pixels or tc.iters <= 0:
+            reason = f"only {len(tvalid)} usable pixels" if tc.iters > 0 else ""
             if reason:
                 self._event(cur.idx, "skipped", reason)
             return self._finish_track(cur, init, float("nan"), 0, bool(reason), t0, reason)
         R, S = tc.n_rays, self.cfg.map.samples_free + self.cfg.map.samples_surface
         if tc.resample_rays:
-            idx = torch.from_numpy(self._sample(cur.valid, tc.iters * R)).to(self.device)
+            idx = torch.from_numpy(self._sample(tvalid, tc.iters * R)).to(self.device)
         else:
-            idx = torch.from_numpy(np.tile(self._sample(cur.valid, R), tc.iters)).to(self.device)
+            idx = torch.from_numpy(np.tile(self._sample(tvalid, R), tc.iters)).to(self.device)
         dirs_c = self.dirs[idx].view(tc.iters, R, 3)
         rgb_t = cur.rgb[idx].view(tc.iters, R, 3)
         d_t = cur.depth[idx]
@@ -287,7 +308,8 @@ class SLAM:
         return MapResult(kf, ba, iters, float(loss), (time.perf_counter() - t0) * 1000)
 
     def _add_keyframe(self, cur: _Current, frame, instance_ids) -> None:
-        cand = valid_pixels(cur.depth_np, None, self.cfg.tracking.ignore_border)
+        cand = self._without_edges(cur, valid_pixels(cur.depth_np, None, self.cfg.tracking.ignore_border),
+                                   self.cfg.mapping.edge_margin)
         n = max(1, int(round(self.cfg.mapping.keyframe_ray_fraction * self.H * self.W)))
         n = min(n, len(cand))
         sel = np.sort(self.rng.choice(cand, size=n, replace=False)) if n > 0 else np.zeros(0, np.int64)
@@ -313,7 +335,8 @@ class SLAM:
                 "dirs": self.dirs[flat],
                 "rgb": self._t(np.concatenate([k.rgb for k in self.keyframes])) / 255.0,
                 "depth": self._t(np.concatenate([k.depth for k in self.keyframes])),
-                "owner": torch.from_numpy(np.concatenate([np.full(len(k), i) for i, k in enumerate(self.keyframes)])).to(self.device),
+                "owner": torch.from_numpy(np.concatenate([np.full(len(k), i) for i, k in enumerate(self.keyframes)]))
+                .to(self.device),
             }
         return self._kf_cache
 
@@ -328,10 +351,11 @@ class SLAM:
         else:
             n_cur = min(n_rays, max(n_rays // (n_kf + 1), mc.min_rays_current))
             n_kfr = n_rays - n_cur
-        if len(cur.valid) == 0:
+        cur_valid = self._without_edges(cur, cur.valid, mc.edge_margin)
+        if len(cur_valid) == 0:
             n_cur, n_kfr = 0, (n_rays if len(usable) else 0)
         kf_idx = usable[self.rng.integers(0, len(usable), size=iters * n_kfr)] if n_kfr else np.zeros(0, np.int64)
-        cur_idx = self._sample(cur.valid, iters * n_cur) if n_cur else np.zeros(0, np.int64)
+        cur_idx = self._sample(cur_valid, iters * n_cur) if n_cur else np.zeros(0, np.int64)
         return kf_idx, cur_idx
 
     def _optimize(self, cur: _Current, iters: int, n_rays: int, first: bool) -> float:
@@ -385,6 +409,7 @@ class SLAM:
             hi = np.maximum(b[1] - side, b[0])
             smooth_box = self._t(np.stack([b[0], hi]))
         last = float("nan")
+        accum = max(1, int(mc.pose_accum_steps))
         for it in range(iters):
             if optimise_poses:
                 T = base_t @ se3_exp(xi * opt_mask)
@@ -399,12 +424,11 @@ class SLAM:
             if smooth_box is not None:
                 loss = loss + mp.w_smooth * smoothness_loss(self.model, smooth_box, mp, self.tgen)
             self.map_opt.zero_grad(set_to_none=True)
-            if pose_opt is not None:
-                pose_opt.zero_grad(set_to_none=True)
             loss.backward()
             self.map_opt.step()
-            if pose_opt is not None:
-                pose_opt.step()
+            if pose_opt is not None and ((it + 1) % accum == 0 or it == iters - 1):
+                pose_opt.step()  # on the pose gradients summed since the last pose step
+                pose_opt.zero_grad(set_to_none=True)
             last = float(loss.detach())
         if not np.isfinite(last):
             self._event(cur.idx, "mapping-nonfinite", "bundle adjustment loss is not finite")
