@@ -3,6 +3,10 @@ fps and per-component ms, on synthetic presets and on the real Bonn crowd clip i
 
     .venv/bin/python benchmarks/bench_dynamic.py                       # the full set (slow: hours on 2 cores)
     .venv/bin/python benchmarks/bench_dynamic.py --presets walker,crowd --frames 80 --size 320x240 --no-bonn
+    .venv/bin/python benchmarks/bench_dynamic.py --presets crowd --modes dynamic,dynamic-noreplay --no-bonn ...
+
+Modes: dynamic, static, dynamic-noreplay (replay buffer off: compare classifier updates) and
+dynamic-yolo (the yolo-seg segmenter with ../shared/models/yolov8n-seg_deq_fp32.onnx).
 
 Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete unless --fresh); prints a
 Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2 threads far slower there).
@@ -24,6 +28,16 @@ os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 sys.path.insert(0, str(REPO))
 
 
+YOLO = REPO.parent / "shared" / "models" / "yolov8n-seg_deq_fp32.onnx"
+# --modes names -> config overrides
+MODES = {
+    "dynamic": ["run.mode=dynamic"],
+    "static": ["run.mode=static"],
+    "dynamic-noreplay": ["run.mode=dynamic", "motion.replay=false"],
+    "dynamic-yolo": ["run.mode=dynamic", "motion.segmenter=yolo-seg", f"motion.segmenter_model={YOLO}"],
+}
+
+
 def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> dict:
     from dynslam_cli.commands._common import resolve_config
     from dynslam_cli.eval.ate import evaluate_run_ate
@@ -34,7 +48,7 @@ def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> d
     if fresh and out.exists():
         shutil.rmtree(out)
     if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
-        cfg = resolve_config(spec, None, sets + [f"run.mode={mode}", "run.save_masks=true"])
+        cfg = resolve_config(spec, None, sets + MODES[mode] + ["run.save_masks=true"])
         run_sequence(spec, cfg, out_dir=out, progress=True)
     ate = evaluate_run_ate(out, plot=False)
     row = {"case": spec, "mode": mode, "ate_cm": 100 * ate.rmse_m, "still_cm": 100 * ate.rmse_still_m}
@@ -44,7 +58,7 @@ def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> d
     row["updates"] = timing.get("classifier_updates", "—")
     row["median_ms"] = timing["median_ms"]
     row["iou"] = "—"
-    if mode == "dynamic" and spec.startswith("synth/"):
+    if mode.startswith("dynamic") and spec.startswith("synth/"):
         m = evaluate_run_masks(out)
         row["iou"] = m.mean_iou_moving
     return row
@@ -55,7 +69,8 @@ def main() -> None:
     ap.add_argument("--presets", default="walker,crowd,kidnap,balloon,tracking")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--size", default="640x480")
-    ap.add_argument("--modes", default="dynamic,static")
+    ap.add_argument("--modes", default="dynamic,static",
+                    help=f"comma-separated, of {', '.join(MODES)} (yolo: {YOLO.name} from ../shared/models)")
     ap.add_argument("--no-bonn", action="store_true")
     ap.add_argument("--bonn-frames", type=int, default=150)
     ap.add_argument("--threads", type=int, default=0)
@@ -76,9 +91,15 @@ def main() -> None:
             cases.append((str(bonn), base + [f"data.frames={a.bonn_frames}"], f"bonn-crowd-clip-{a.bonn_frames}f"))
         else:
             print(f"skipping the Bonn clip: {bonn} is absent", file=sys.stderr)
+    modes = [m for m in a.modes.split(",") if m]
+    bad = [m for m in modes if m not in MODES]
+    if bad:
+        ap.error(f"unknown mode(s) {', '.join(bad)}; choose from {', '.join(MODES)}")
+    if "dynamic-yolo" in modes and not YOLO.is_file():
+        ap.error(f"mode dynamic-yolo needs {YOLO}")
     rows = []
     for spec, sets, name in cases:
-        for mode in a.modes.split(","):
+        for mode in modes:
             rows.append(run_case(spec, mode, Path(a.out) / name / mode, sets, a.fresh))
     comps = ["segment", "encode", "track", "render", "check", "update", "map", "frame"]
     print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | " + " | ".join(comps) + " |")
@@ -88,6 +109,14 @@ def main() -> None:
         ms = " | ".join(f"{r['median_ms'].get(c, float('nan')):.0f}" if c in r["median_ms"] else "—" for c in comps)
         print(f"| {r['case']} | {r['mode']} | {r['ate_cm']:.2f} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
               f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {ms} |")
+    # the overhead of each dynamic variant over static mode on the same case (median ms per frame)
+    static = {r["case"]: r for r in rows if r["mode"] == "static"}
+    for r in rows:
+        st = static.get(r["case"])
+        if st is not None and r["mode"] != "static" and "frame" in r["median_ms"] and "frame" in st["median_ms"]:
+            d, s0 = r["median_ms"]["frame"], st["median_ms"]["frame"]
+            print(f"overhead of {r['mode']} over static on {r['case']}: {d:.0f} vs {s0:.0f} ms per frame "
+                  f"(x{d / max(s0, 1e-9):.2f}); fps {r['fps']:.2f} vs {st['fps']:.2f}")
 
 
 if __name__ == "__main__":

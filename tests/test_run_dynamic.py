@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
 from dynslam_cli.run.dynamic import DynamicLoop
+from dynslam_cli.slam.keyframes import subsample_depth
 
 TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
         "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20", "--set", "mapping.first_rays=256",
@@ -44,7 +45,7 @@ def _traj(path):
 def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
     out = tmp_path / "dyn"
     res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out),
-                                   "--save-masks", "-q"] + TINY)
+                                   "--save-masks", "-q", "--set", "run.retrack_fraction=0.0001"] + TINY)
     assert res.exit_code == 0, res.output
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "completed" and meta["mode"] == "dynamic"
@@ -62,6 +63,10 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
         rec = json.loads(ln)
         assert {"frame", "labels", "loss_before", "loss_after", "replay_size", "keyframe_rays_masked"} <= set(rec)
         assert 1 <= rec["frame"] < 10
+    recs = [json.loads(ln) for ln in lines]
+    assert timing["retracked_frames"] == sum(r["retracked"] for r in recs)
+    newly_dynamic = any(lab and not pre for r in recs for lab, pre in zip(r["labels"], r["predicted_before"], strict=True))
+    assert timing["retracked_frames"] >= 1 or not newly_dynamic
     assert _traj(out / "traj_est.txt").shape == (10, 8)
 
 
@@ -85,6 +90,8 @@ def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
 def _bare_loop(keyframes, intr):
     loop = DynamicLoop.__new__(DynamicLoop)
     loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr)
+    loop.mm = SimpleNamespace(m=SimpleNamespace(depth_threshold=0.3))
+    loop.occlusion_aware = True
     return loop
 
 
@@ -92,26 +99,62 @@ def test_checkable_depth_drops_edges_and_unseen_space():
     intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
     depth = np.full((48, 64), 2.0, np.float32)
     depth[20:30, 20:30] = 1.0  # a box in front of a wall
-    kf = SimpleNamespace(pose_c2w=np.eye(4))
-    out = _bare_loop([kf], intr).checkable_depth(depth, np.eye(4), step=1)
+    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=None)
+    out, fwd = _bare_loop([kf], intr).checkable_depth(depth, np.eye(4), step=1)
     assert out[25, 25] == 1.0 and out[5, 5] == 2.0  # interiors kept
     assert out[20, 25] == 0 and out[19, 25] == 0 and out[25, 30] == 0  # both sides of the step dropped
+    assert fwd.all()  # without a stored depth map the whole frustum counts as observed
     # the camera moved 1 m to the right: what it sees on its right was never in a keyframe's view
     moved = np.eye(4)
     moved[0, 3] = 1.0
-    out2 = _bare_loop([kf], intr).checkable_depth(depth, moved, step=1)
+    out2, _ = _bare_loop([kf], intr).checkable_depth(depth, moved, step=1)
     assert out2[5, 5] > 0 and np.all(out2[:, -5:] == 0)
 
 
+def test_checkable_depth_knows_what_keyframes_saw_behind_occluders():
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    seen = np.full((48, 64), 2.0, np.float32)
+    seen[20:32, 20:32] = 1.0  # the keyframe saw a box in front of the wall
+    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=subsample_depth(seen))
+    now = np.full((48, 64), 2.0, np.float32)  # the box has gone ...
+    now[4:12, 40:52] = 1.5  # ... and something new stands in front of the wall
+    out, fwd = _bare_loop([kf], intr).checkable_depth(now, np.eye(4), step=1)
+    assert not fwd[26, 26] and out[26, 26] == 2.0  # the wall behind the old box: never observed
+    assert fwd[8, 46] and fwd[40, 5]  # free space / the wall the keyframe saw
+    loop = _bare_loop([kf], intr)
+    loop.occlusion_aware = False
+    assert loop.checkable_depth(now, np.eye(4), step=1)[1].all()
+
+
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():
-    kfs = [SimpleNamespace(frame_id=0, instance_ids=np.array([0, 1, 2, 2, -1]), usable=np.ones(5, bool)),
-           SimpleNamespace(frame_id=5, instance_ids=np.array([1, 1, 0]), usable=np.zeros(3, bool))]
+    kfs = [SimpleNamespace(frame_id=0, instance_ids=np.array([0, 1, 2, 2, -1]), usable=np.ones(5, bool), near_ids=None),
+           SimpleNamespace(frame_id=5, instance_ids=np.array([1, 1, 0]), usable=np.zeros(3, bool), near_ids=None),
+           # ray 0 lies within the mask dilation of instance 2, ray 1 next to instance 1 only
+           SimpleNamespace(frame_id=10, instance_ids=np.array([1, 1]), usable=np.ones(2, bool),
+                           near_ids=np.array([[2, 1], [1, 0]]))]
     loop = _bare_loop(kfs, None)
-    dyn = {0: np.array([2]), 5: np.array([], np.int32)}
+    dyn = {0: np.array([2]), 5: np.array([], np.int32), 10: np.array([2])}
     loop.mm = SimpleNamespace(keyframes=dyn, keyframe_dynamic_ids=lambda k: dyn[k])
-    assert loop._refresh_keyframes() == 2
+    assert loop._refresh_keyframes() == 3
     assert kfs[0].usable.tolist() == [True, True, False, False, True]
     assert kfs[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again
+    assert kfs[2].usable.tolist() == [False, True]
+
+
+def test_near_ids_and_the_dilated_static_mask():
+    from dynslam_cli.motion.module import MotionModule
+
+    ids = np.zeros((20, 40), np.int32)
+    ids[5:15, 10:20] = 1
+    ids[5:15, 20:30] = 2
+    loop = _bare_loop([], None)
+    loop.mm = SimpleNamespace(m=SimpleNamespace(mask_dilation=0.05))  # 2 px at width 40
+    near = loop.near_ids(ids, np.array([[8, 10], [12, 10], [18, 10], [35, 10]]))
+    assert near.tolist() == [[1, 0], [1, 1], [2, 1], [0, 0]]  # (max, min) id within 2 px
+    mm = MotionModule.__new__(MotionModule)
+    mm.m = SimpleNamespace(mask_dilation=0.05)
+    static = mm._static_mask(ids, np.array([False, True]))
+    assert not static[3:17, 18:32].any() and static[10, 17] and static[10, 32] and static[2, 25]
 
 
 def test_closest_rendered_forgives_blurred_edges_not_movers():

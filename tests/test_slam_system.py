@@ -181,3 +181,21 @@ def test_bundle_adjustment_steps_poses_once_per_accumulation(fitted, monkeypatch
     res = slam.process(F(1, se3_exp_np([0.01, 0, 0, 0, 0, 0]), INTR))
     assert res.map is not None and res.map.ba and len(pose_steps) == steps
     assert np.allclose(slam.poses[0], before)  # the first keyframe stays fixed
+
+
+def test_retrack_replaces_the_last_pose_and_keeps_the_bookkeeping(fitted):
+    cfg, state = fitted
+    slam = _load(cfg, state)
+    with pytest.raises(Exception, match="retrack"):
+        slam.retrack(F(0, np.eye(4), INTR))
+    true = se3_exp_np([0.02, -0.01, 0.01, 0.0, 0.01, 0.0])
+    f1 = F(1, true, INTR)
+    bad = np.zeros((INTR.height, INTR.width), bool)  # nothing usable: tracking is skipped
+    first = slam.track(f1, bad)
+    assert first.diverged and "usable" in first.reason
+    n, prev = slam.n_frames, slam._undo[0]
+    res = slam.retrack(f1, None)
+    assert slam.n_frames == n and len(slam.timestamps) == n and len(slam.kf_of) == n and len(slam.rel) == n
+    assert slam._undo[0] is prev and not res.diverged
+    assert np.linalg.norm(res.pose_c2w[:3, 3] - true[:3, 3]) < 0.5 * np.linalg.norm(true[:3, 3])
+    slam.map(f1)  # map() still accepts the retracked frame (it raises otherwise)

@@ -35,8 +35,12 @@ def check_size(h: int, w: int, width: int) -> tuple[int, int]:
 
 def inconsistency_check(observed_depth: np.ndarray, rendered_depth: np.ndarray, ids: np.ndarray,
                         t_d: float = 0.3, t_p: float = 0.05, rendered_rgb: Optional[np.ndarray] = None,
-                        rendered_segmenter=None, width: int = 160, min_pixels: int = 12) -> CheckResult:
-    """Run the check. ``observed_depth`` and ``ids`` at frame resolution, ``rendered_*`` any size."""
+                        rendered_segmenter=None, width: int = 160, min_pixels: int = 12,
+                        forward_valid: Optional[np.ndarray] = None) -> CheckResult:
+    """Run the check. ``observed_depth`` and ``ids`` at frame resolution, ``rendered_*`` any size.
+
+    ``forward_valid`` (frame resolution, bool): pixels where "observed in front of the map" may
+    count (e.g. space some keyframe observed); None = everywhere valid."""
     H, W = observed_depth.shape[:2]
     wh = check_size(H, W, width)
     obs = _resize(np.nan_to_num(observed_depth.astype(np.float32)), wh)
@@ -45,6 +49,8 @@ def inconsistency_check(observed_depth: np.ndarray, rendered_depth: np.ndarray, 
     k = int(ids.max(initial=0))
     valid = (obs > 0) & (ren > 0)
     fwd_px = valid & (ren - obs > t_d)
+    if forward_valid is not None:
+        fwd_px &= _resize(np.asarray(forward_valid).astype(np.uint8), wh) > 0
     bwd_px = valid & (obs - ren > t_d)
     n_valid = np.bincount(idm[valid], minlength=k + 1)[: k + 1]
     n_fwd = np.bincount(idm[fwd_px], minlength=k + 1)[: k + 1]

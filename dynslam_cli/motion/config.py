@@ -50,6 +50,8 @@ class MotionConfig:
     centre_feature: bool = opt(False, "Concatenate the instance's 3-D centre to its embedding.")
     centre_scale: float = opt(1.0, "Multiplier on the 3-D centre (metres) when concatenated.")
     # --- inconsistency check
+    mask_dilation: float = opt(0.008, "The dynamic mask is dilated by this fraction of the image width (0.008: 5 px at "
+                               "640) before tracking and mapping: segment borders miss the outline of a mover.")
     depth_threshold: float = opt(0.3, "t_d (m): depth difference counted as inconsistent.")
     pixel_fraction: float = opt(0.05, "t_p: fraction of inconsistent pixels that marks an instance as moving.")
     bidirectional: bool = opt(True, "Also segment the rendered view and flag segments seen behind the map (objects that left).")

@@ -34,6 +34,11 @@ def intrinsics_tuple(intrinsics) -> tuple[float, float, float, float]:
     raise DynslamError(f"cannot read intrinsics from {intrinsics!r}")
 
 
+def dilation_radius(fraction: float, width: int) -> int:
+    """Mask dilation in pixels for an image ``width`` pixels wide."""
+    return max(0, int(round(float(fraction) * int(width))))
+
+
 def instance_centres(depth: np.ndarray, ids: np.ndarray, k: int, intr: tuple, pose_c2w: np.ndarray,
                      step: int = 2) -> np.ndarray:
     """(k, 3) world-frame mean of the back-projected valid pixels of each instance (NaN if none)."""
@@ -91,11 +96,19 @@ class MotionModule:
             final = np.maximum(p, pp)
         return dyn, final.astype(np.float32), pp
 
-    @staticmethod
-    def _static_mask(ids: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    def _static_mask(self, ids: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        """Pixels usable for tracking and mapping: outside every dynamic instance dilated by
+        ``motion.mask_dilation`` (of the image width)."""
         lut = np.ones(len(dynamic) + 1, bool)
         lut[1:] = ~dynamic
-        return lut[ids]
+        static = lut[ids]
+        r = dilation_radius(self.m.mask_dilation, ids.shape[1])
+        if r > 0 and not static.all():
+            import cv2
+
+            k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+            static = cv2.dilate((~static).astype(np.uint8), k) == 0
+        return static
 
     # --- per frame
     def observe(self, frame, pose_c2w_guess: np.ndarray) -> FrameInstances:
@@ -124,7 +137,8 @@ class MotionModule:
         return f if f is not None else self._features(inst.embeddings, inst.centres)
 
     def check_and_update(self, frame, inst: FrameInstances, pose_c2w: np.ndarray, rendered_depth: np.ndarray,
-                         rendered_rgb: Optional[np.ndarray]) -> Optional[UpdateRecord]:
+                         rendered_rgb: Optional[np.ndarray],
+                         forward_valid: Optional[np.ndarray] = None) -> Optional[UpdateRecord]:
         m = self.m
         t0 = time.perf_counter()
         H, W = frame.depth.shape[:2]
@@ -134,7 +148,7 @@ class MotionModule:
         self.rendered_segmenter.intrinsics = (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
         res = inconsistency_check(frame.depth, rendered_depth, inst.ids, m.depth_threshold, m.pixel_fraction,
                                   rendered_rgb, self.rendered_segmenter if m.bidirectional else None,
-                                  m.check_width, m.min_check_pixels)
+                                  m.check_width, m.min_check_pixels, forward_valid)
         # centres at the tracked pose
         inst.centres = instance_centres(frame.depth, inst.ids, inst.count, self.intr, pose_c2w)
         feats = self._features(inst.embeddings, inst.centres)

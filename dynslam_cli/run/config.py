@@ -25,3 +25,9 @@ class RunConfig:
                                "pixels (at check resolution) agrees with the observation; 0 = the plain per-pixel check.")
     check_warmup: int = opt(5, "Dynamic mode: no inconsistency check before this frame (the map needs a keyframe "
                                "and a bundle adjustment beyond frame 0 to judge anything).")
+    check_occlusion: bool = opt(True, "Dynamic mode: 'observed in front of the map' counts only where some recent "
+                                "keyframe saw the point or the free space at it, not an occluder in front of it "
+                                "(newly revealed space is unknown to the map).")
+    retrack_fraction: float = opt(0.02, "Dynamic mode: when a classifier update newly marks more than this fraction of "
+                                  "the frame's valid pixels dynamic, the frame is tracked again without them "
+                                  "(the paper tracks once); 0 = never.")

@@ -35,6 +35,8 @@ class DynamicLoop:
         self.width = int(intrinsics.width)
         self.check_radius = int(cfg.run.check_radius)
         self.warmup = int(cfg.run.check_warmup)
+        self.retrack_fraction = float(cfg.run.retrack_fraction)
+        self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -52,26 +54,56 @@ class DynamicLoop:
                 continue
             dyn_ids = self.mm.keyframe_dynamic_ids(kf.frame_id)
             kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
+            if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
+                kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)
             masked += int((~kf.usable).sum())
         return masked
 
-    def checkable_depth(self, depth: np.ndarray, pose_c2w: np.ndarray, step: int = 4) -> np.ndarray:
-        """The observed depth with the pixels the map cannot judge set to 0 (invalid):
+    def checkable_depth(self, depth: np.ndarray, pose_c2w: np.ndarray, step: int = 4):
+        """What of the observed depth the map can judge: returns ``(depth, forward_ok)``.
+
+        ``depth`` is the observation with these pixels set to 0 (invalid):
 
         - pixels within 2 px of a depth discontinuity (relative jump > 5 %), where a one-pixel
           misalignment between the reduced-resolution render and the observation reads as metres;
-        - pixels whose 3-D point lies outside the view frustum of every keyframe: newly revealed
-          space the map never observed, whose rendered depth means nothing.
+        - pixels whose 3-D point lies outside the view frustum of every recent keyframe: newly
+          revealed space the map never observed, whose rendered depth means nothing.
+
+        ``forward_ok`` (bool) marks the pixels where "observed in front of the map" is evidence of
+        motion: some keyframe saw the point or the free space where it now is, not an occluder in
+        front of it (space hidden behind an occluder is unknown to the map too).  "Observed behind
+        the map" (a mapped thing left) is judged on every valid pixel.
         """
-        from dynslam_cli.slam.keyframes import depth_edges, seen_by_keyframes
+        from dynslam_cli.slam.keyframes import depth_edges, keyframe_visibility
 
         d = depth.astype(np.float32)
         out = np.where((d > 0) & ~depth_edges(d, 0.05, 2), d, 0.0).astype(np.float32)
         kfs = self.slam.keyframes
         if not kfs:
-            return out
-        out[~seen_by_keyframes(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step)] = 0.0
-        return out
+            return out, out > 0
+        frustum, observed = keyframe_visibility(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step,
+                                                self.mm.m.depth_threshold)
+        out[~frustum] = 0.0
+        return out, observed if self.occlusion_aware else np.ones_like(observed)
+
+    def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of
+        each keyframe ray ``pixels`` (u, v), so that re-masking a keyframe after a classifier
+        update dilates dynamic instances as the live mask does."""
+        import cv2
+
+        from dynslam_cli.motion.module import dilation_radius
+
+        r = dilation_radius(self.mm.m.mask_dilation, ids.shape[1])
+        u, v = pixels[:, 0].astype(np.int64), pixels[:, 1].astype(np.int64)
+        own = ids[v, u].astype(np.int32)
+        if r <= 0:
+            return np.stack([own, own], 1)
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        f = ids.astype(np.float32)  # exact for ids < 2^24
+        hi = cv2.dilate(f, k)[v, u].astype(np.int32)
+        lo = cv2.erode(f, k)[v, u].astype(np.int32)
+        return np.stack([hi, lo], 1)
 
     @staticmethod
     def closest_rendered(rendered: np.ndarray, observed: np.ndarray, radius: int = 1) -> np.ndarray:
@@ -107,16 +139,26 @@ class DynamicLoop:
         t_track = tr.ms
         t_render = 0.0
         record = None
+        retracked = False
         if self.slam.n_frames > max(1, self.warmup):  # a map built from one frame is too immature to judge
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
             raw_depth = r_depth
             t_render = (time.perf_counter() - t1) * 1e3
-            judged = dataclasses.replace(frame, depth=self.checkable_depth(frame.depth, tr.pose_c2w))
+            judged_depth, forward_ok = self.checkable_depth(frame.depth, tr.pose_c2w)
+            judged = dataclasses.replace(frame, depth=judged_depth)
             if self.check_radius > 0:
                 r_depth = self.closest_rendered(r_depth, judged.depth, self.check_radius)
-            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb)
+            before = inst.static_mask.copy()
+            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok)
+            if record is not None and self.retrack_fraction > 0:
+                valid = np.asarray(frame.depth) > 0
+                newly = int((before & ~inst.static_mask & valid).sum())
+                if newly > self.retrack_fraction * max(1, int(valid.sum())):
+                    tr = self.slam.retrack(frame, inst.static_mask)
+                    t_track += tr.ms
+                    retracked = True
             if self.mask_dir is not None:  # the rendered depth beside the masks (montage plots)
                 self._write_png(self.mask_dir.parent / "renders" / f"{stamp}_depth.png",
                                 np.clip(raw_depth * 5000.0, 0, 65535).astype(np.uint16))
@@ -126,11 +168,14 @@ class DynamicLoop:
             rec["timestamp"] = stamp
             masked = self._refresh_keyframes()
             rec["keyframe_rays_masked"] = masked
+            rec["retracked"] = retracked
             self.records.append(rec)
         n_kf = len(self.slam.keyframes)
         mr = self.slam.map(frame, inst.static_mask, inst.ids)
         if len(self.slam.keyframes) > n_kf:
-            self.mm.register_keyframe(self.slam.keyframes[-1].frame_id, inst)
+            kf = self.slam.keyframes[-1]
+            kf.near_ids = self.near_ids(inst.ids, kf.pixels)
+            self.mm.register_keyframe(kf.frame_id, inst)
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:
@@ -142,6 +187,7 @@ class DynamicLoop:
             "check": tm.get("check", 0.0), "update": tm.get("update", 0.0),
             "map": 0.0 if mr is None else mr.ms, "frame": (time.perf_counter() - t0) * 1e3,
             "_loss": tr.loss, "_dynamic": int(inst.dynamic.sum()), "_updated": record is not None,
+            "_retracked": retracked,
         }
 
     # ------------------------------------------------------------------ outputs and state

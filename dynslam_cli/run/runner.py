@@ -282,6 +282,7 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
         if loop is not None:
             paths["updates"] = loop.write_updates(updates_path)
             timing["classifier_updates"] = len(loop.records)
+            timing["retracked_frames"] = sum(1 for r in loop.records if r.get("retracked"))
         paths["timing"] = write_json_atomic(out / "timing.json", timing)
         if slam.events:
             write_json_atomic(out / "tracking_events.json", slam.events)

@@ -21,19 +21,35 @@ class Keyframe:
     instance_ids: np.ndarray  # (M,) int32, -1 = none
     usable: np.ndarray       # (M,) bool, mutable
     pose_c2w: np.ndarray = field(default_factory=lambda: np.eye(4))  # refined by BA
+    # the keyframe's depth map on its static pixels (0 elsewhere) every DEPTH_STRIDE pixels (float16;
+    # None = not kept): what the map was taught from it, for keyframe_visibility
+    depth_small: np.ndarray | None = None
+    # (M, 2) int32: the largest and smallest instance id within the dynamic mask's dilation radius
+    # of each ray (None = not kept); a ray is unusable when any of its ids is dynamic
+    near_ids: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.depth)
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("frame_id", "timestamp", "pixels", "rgb", "depth",
-                                              "instance_ids", "usable", "pose_c2w")}
+                                              "instance_ids", "usable", "pose_c2w", "depth_small", "near_ids")}
 
     @staticmethod
     def from_dict(d: dict) -> "Keyframe":
+        small, near = d.get("depth_small"), d.get("near_ids")
         return Keyframe(int(d["frame_id"]), float(d["timestamp"]), np.asarray(d["pixels"]), np.asarray(d["rgb"]),
                         np.asarray(d["depth"]), np.asarray(d["instance_ids"]), np.array(d["usable"], bool),
-                        np.array(d["pose_c2w"], np.float64))
+                        np.array(d["pose_c2w"], np.float64), None if small is None else np.asarray(small),
+                        None if near is None else np.asarray(near))
+
+
+DEPTH_STRIDE = 4
+
+
+def subsample_depth(depth: np.ndarray) -> np.ndarray:
+    """The depth map every DEPTH_STRIDE pixels (nearest), float16, as keyframes keep it."""
+    return np.asarray(depth, np.float32)[::DEPTH_STRIDE, ::DEPTH_STRIDE].astype(np.float16)
 
 
 def valid_pixels(depth: np.ndarray, mask: np.ndarray | None, border: int, need_depth: bool = True) -> np.ndarray:
@@ -73,26 +89,51 @@ def depth_edges(depth: np.ndarray, rel_jump: float = 0.05, dilate: int = 2) -> n
     return cv2.dilate(jump.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
 
 
-def seen_by_keyframes(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4) -> np.ndarray:
-    """Pixels whose back-projected 3-D point (at ``pose_c2w``) lies inside the view frustum of at
-    least one of ``keyframes``: space the map has observed.  Evaluated on every ``step``-th pixel
-    and upsampled (nearest).  (H, W) bool; all False when there are no keyframes."""
+def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
+                        occlusion_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """What the keyframes saw of the current frame's back-projected points (at ``pose_c2w``).
+
+    Returns two (H, W) bool masks, evaluated every ``step``-th pixel and upsampled (nearest):
+
+    - ``in_frustum``: the point lies inside the view frustum of at least one keyframe;
+    - ``observed``: for at least one keyframe the point is inside its frustum and the keyframe's
+      measured depth there (``depth_small``) does not stop more than ``occlusion_margin`` in front
+      of it: that keyframe saw the point, or the free space where it now is, not an occluder.
+      Keyframes without ``depth_small`` count their whole frustum as observed.
+
+    Both are all False when there are no keyframes.
+    """
     import cv2
 
     d = np.asarray(depth, np.float32)
     H, W = d.shape
     if not keyframes:
-        return np.zeros((H, W), bool)
+        return np.zeros((H, W), bool), np.zeros((H, W), bool)
     vs, us = np.mgrid[0:H:step, 0:W:step]
     z = d[::step, ::step]
     pts = np.stack([(us - intr.cx) / intr.fx * z, (vs - intr.cy) / intr.fy * z, z], -1).reshape(-1, 3)
     world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
-    seen = np.zeros(len(world), bool)
+    frustum = np.zeros(len(world), bool)
+    observed = np.zeros(len(world), bool)
     for kf in keyframes:
         T = np.linalg.inv(kf.pose_c2w)
         pc = world @ T[:3, :3].T + T[:3, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
             v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
-        seen |= (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-    return cv2.resize(seen.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+        inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        frustum |= inside
+        small = kf.depth_small
+        if small is not None and inside.any():
+            hs, ws = small.shape
+            idx = np.flatnonzero(inside)
+            iu = np.clip(np.round(u[idx] / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+            iv = np.clip(np.round(v[idx] / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+            d_kf = small[iv, iu].astype(np.float32)
+            inside[idx[(d_kf <= 0) | (d_kf < pc[idx, 2] - occlusion_margin)]] = False
+        observed |= inside
+
+    def up(m):
+        return cv2.resize(m.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+
+    return up(frustum), up(observed)

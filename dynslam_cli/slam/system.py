@@ -22,7 +22,7 @@ from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses, smoothness_loss
 from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.map.render import render_rays, sample_depths
-from dynslam_cli.slam.keyframes import Keyframe, depth_edges, valid_pixels
+from dynslam_cli.slam.keyframes import Keyframe, depth_edges, subsample_depth, valid_pixels
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +108,7 @@ class SLAM:
         self._cur: Optional[_Current] = None
         self._kf_cache = None  # concatenated keyframe rays (torch) and owners
         self._prev_depth: Optional[np.ndarray] = None  # last tracked frame's (masked) depth, ICP reference
+        self._undo: Optional[tuple] = None  # (ICP reference before the last track(),) for retrack()
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
 
     # ------------------------------------------------------------------ helpers
@@ -161,7 +162,7 @@ class SLAM:
             rel = inv_np(self.poses[-2]) @ p1
         self.last_icp = None
         if tc.icp_init and cur is not None and self._prev_depth is not None:
-            res = icp_depth(self._prev_depth, self._masked_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
+            res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
                             init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
                             max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction)
             self.last_icp = res
@@ -192,6 +193,12 @@ class SLAM:
     @staticmethod
     def _masked_depth(cur: _Current) -> np.ndarray:
         return cur.depth_np if cur.mask is None else np.where(cur.mask, cur.depth_np, 0).astype(np.float32)
+
+    def _icp_depth(self, cur: _Current) -> np.ndarray:
+        """The depth ICP aligns: static pixels, without depth edges (tracking.edge_margin)."""
+        d = self._masked_depth(cur)
+        m = self.cfg.tracking.edge_margin
+        return d if m <= 0 else np.where(self._edges(cur, m), 0, d).astype(np.float32)
 
     def track(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
         t0 = time.perf_counter()
@@ -265,9 +272,21 @@ class SLAM:
         self.events.append({"frame": int(idx), "kind": kind, "detail": detail})
         log.warning("frame %d: tracking %s (%s); using the constant-velocity pose", idx, kind, detail)
 
+    def retrack(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
+        """Track the last tracked frame again (e.g. with a corrected static mask), replacing its
+        pose; must come between track() and map() of that frame."""
+        cur = self._cur
+        if cur is None or cur.idx != self.n_frames - 1 or cur.idx == 0 or self._undo is None:
+            raise DynslamError("SLAM.retrack() must follow track() of the same frame (not the first)")
+        for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
+            lst.pop()
+        self._prev_depth = self._undo[0]
+        return self.track(frame, mask)
+
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
-        self._prev_depth = self._masked_depth(cur) if self.cfg.tracking.icp_init else None
+        self._undo = (self._prev_depth,)
+        self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
         kf_id = (cur.idx // ke) * ke
@@ -288,6 +307,8 @@ class SLAM:
         if mask is not None and (cur.mask is None or not np.array_equal(np.asarray(mask, bool), cur.mask)):
             cur.valid = valid_pixels(cur.depth_np, mask, self.cfg.tracking.ignore_border)
             cur.mask = np.asarray(mask, bool)
+            if self.cfg.tracking.icp_init:  # the next frame's ICP aligns to the static pixels as now known
+                self._prev_depth = self._icp_depth(cur)
         mc = self.cfg.mapping
         t0 = time.perf_counter()
         ba = False
@@ -320,7 +341,8 @@ class SLAM:
             ids = np.full(len(sel), -1, np.int32)
         usable = np.ones(len(sel), bool) if cur.mask is None else cur.mask.reshape(-1)[sel].copy()
         kf = Keyframe(cur.idx, cur.timestamp, uv, cur.rgb_np.reshape(-1, 3)[sel].copy(),
-                      cur.depth_np.reshape(-1)[sel].copy(), ids, usable, self.poses[cur.idx].copy())
+                      cur.depth_np.reshape(-1)[sel].copy(), ids, usable, self.poses[cur.idx].copy(),
+                      subsample_depth(self._masked_depth(cur)))  # what the map was taught: static pixels
         self.keyframes.append(kf)
         self._kf_cache = None
 
