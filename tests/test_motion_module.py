@@ -60,9 +60,13 @@ def test_check_reverse_flags_what_left_or_moved_away():
     rrgb[10:40, 10:30] = (30, 160, 40)
     seg = GeometricSegmenter(width=80, min_area=0.01, min_instance_area=4)
     res = inconsistency_check(observed, rendered, ids, 0.3, 0.05, rendered_rgb=rrgb, rendered_segmenter=seg,
-                              width=80)
+                              width=80, backward_current=True)
     assert not res.forward.any()
     assert res.backward.tolist() == [True, False] and res.observed_moving.tolist() == [True, False]
+    # by default the uncovered wall is not labelled moving: only the rendered segment is flagged
+    dflt = inconsistency_check(observed, rendered, ids, 0.3, 0.05, rendered_rgb=rrgb, rendered_segmenter=seg,
+                               width=80)
+    assert not dflt.observed_moving.any() and dflt.rendered_flagged.tolist() == res.rendered_flagged.tolist()
     assert len(res.rendered_flagged) == 1
     flagged = res.rendered_ids == res.rendered_flagged[0]
     assert flagged[12:38, 12:28].all() and not flagged[:, 40:].any()

@@ -4,9 +4,11 @@ Forward: instance k is observed moving when the fraction of its valid pixels wit
 rendered − observed > t_d exceeds t_p (something now stands in front of the map).
 Backward: the rendered view is segmented (geometric segmenter on rendered rgb + depth); a rendered
 segment is flagged when observed − rendered > t_d on more than t_p of its valid pixels (the mapped
-thing left or moved away). Flagged rendered segments are mapped onto the current instances by
-overlap: instance k is also observed moving when the 'behind' pixels inside flagged rendered
-segments make up more than t_p of its valid pixels. Everything runs at a reduced resolution.
+thing left or moved away); the caller encodes flagged rendered segments and labels them dynamic.
+Optionally (``backward_current``) they are also mapped onto the current instances by overlap:
+instance k is then observed moving when the 'behind' pixels inside flagged rendered segments make
+up more than t_p of its valid pixels (that labels the uncovered background, so it is off by
+default). Everything runs at a reduced resolution.
 """
 
 from __future__ import annotations
@@ -36,11 +38,16 @@ def check_size(h: int, w: int, width: int) -> tuple[int, int]:
 def inconsistency_check(observed_depth: np.ndarray, rendered_depth: np.ndarray, ids: np.ndarray,
                         t_d: float = 0.3, t_p: float = 0.05, rendered_rgb: Optional[np.ndarray] = None,
                         rendered_segmenter=None, width: int = 160, min_pixels: int = 12,
-                        forward_valid: Optional[np.ndarray] = None) -> CheckResult:
+                        forward_valid: Optional[np.ndarray] = None, backward_current: bool = False) -> CheckResult:
     """Run the check. ``observed_depth`` and ``ids`` at frame resolution, ``rendered_*`` any size.
 
     ``forward_valid`` (frame resolution, bool): pixels where "observed in front of the map" may
-    count (e.g. space some keyframe observed); None = everywhere valid."""
+    count (e.g. space some keyframe observed); None = everywhere valid.
+
+    ``backward_current``: also mark current instances as moving from the 'behind' pixels inside
+    flagged rendered segments.  Off by default: those pixels show what the departed object
+    uncovered (the floor or wall behind it), which is static; the object that left is the flagged
+    rendered segment itself (``rendered_flagged``), which callers label dynamic."""
     H, W = observed_depth.shape[:2]
     wh = check_size(H, W, width)
     obs = _resize(np.nan_to_num(observed_depth.astype(np.float32)), wh)
@@ -75,7 +82,7 @@ def inconsistency_check(observed_depth: np.ndarray, rendered_depth: np.ndarray, 
         rflag = (rv >= min_pixels) & (rb / np.maximum(rv, 1) > t_p)
         rflag[0] = False
         flagged = np.nonzero(rflag)[0]
-        if len(flagged):
+        if len(flagged) and backward_current:
             in_flagged = rflag[rendered_ids] & bwd_px
             n_b = np.bincount(idm[in_flagged], minlength=k + 1)[: k + 1]
             bwd = judged & (n_b / np.maximum(n_valid, 1) > t_p)

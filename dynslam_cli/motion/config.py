@@ -55,6 +55,9 @@ class MotionConfig:
     depth_threshold: float = opt(0.3, "t_d (m): depth difference counted as inconsistent.")
     pixel_fraction: float = opt(0.05, "t_p: fraction of inconsistent pixels that marks an instance as moving.")
     bidirectional: bool = opt(True, "Also segment the rendered view and flag segments seen behind the map (objects that left).")
+    backward_current: bool = opt(False, "Backward check: also label current instances moving where they show what a "
+                                 "departed object uncovered (off: that is the static background; the departed object's "
+                                 "rendered segment is labelled dynamic either way).")
     check_width: int = opt(160, "Width at which the check runs (rendered maps of any size are resized to it).")
     min_check_pixels: int = opt(12, "Instances with fewer valid pixels at check resolution are not judged.")
     seed: int = opt(0, "Seed of classifier initialisation and replay sampling.")

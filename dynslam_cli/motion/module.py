@@ -148,7 +148,7 @@ class MotionModule:
         self.rendered_segmenter.intrinsics = (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
         res = inconsistency_check(frame.depth, rendered_depth, inst.ids, m.depth_threshold, m.pixel_fraction,
                                   rendered_rgb, self.rendered_segmenter if m.bidirectional else None,
-                                  m.check_width, m.min_check_pixels, forward_valid)
+                                  m.check_width, m.min_check_pixels, forward_valid, m.backward_current)
         # centres at the tracked pose
         inst.centres = instance_centres(frame.depth, inst.ids, inst.count, self.intr, pose_c2w)
         feats = self._features(inst.embeddings, inst.centres)
