@@ -26,6 +26,16 @@ def test_icp_recovers_a_known_small_motion():
     assert np.linalg.norm(res.T[:3, 3]) > 0.02
 
 
+def test_icp_with_a_point_budget_still_recovers_the_motion():
+    p0 = se3_exp_np([0.1, 0.05, 0.2, 0.02, 0.1, 0.0])
+    motion = se3_exp_np([0.02, -0.015, 0.01, 0.02, -0.03, 0.01])
+    _, d0 = render(p0, INTR)
+    _, d1 = render(p0 @ motion, INTR)
+    res = icp_depth(d0, d1, K, factors=(2, 1), iters=(10, 6), max_points=2000)  # of ~19 000
+    err = inv_np(motion) @ res.T
+    assert res.ok and res.inliers <= 2000 and np.linalg.norm(err[:3, 3]) < 2e-3 and _angle(err) < 0.1
+
+
 def test_icp_from_a_good_init_stays_and_fails_cleanly_without_depth():
     p0 = np.eye(4)
     motion = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.01, 0.0])

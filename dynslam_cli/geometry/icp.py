@@ -109,13 +109,15 @@ def _rot(w):
 def icp_depth(ref_depth: np.ndarray, cur_depth: np.ndarray, intr, init: Optional[np.ndarray] = None,
               factors=(8, 4), iters=(8, 5), max_dist: float = 0.1, huber: float = 0.02,
               min_points: int = 100, min_fraction: float = 0.2, max_depth: float = 0.0,
-              depth_weight: float = 0.0) -> ICPResult:
+              depth_weight: float = 0.0, max_points: int = 0) -> ICPResult:
     """Align ``cur_depth`` to ``ref_depth`` (both full resolution or both already downsampled by
     ``factors[-1]`` when ``intr`` is given for that resolution: callers pass full-resolution
     images and intrinsics ``(fx, fy, cx, cy)``).  Returns T (ref <- cur).
 
     ``max_depth`` > 0 ignores depth beyond it; ``depth_weight`` > 0 down-weights residuals by
-    ``z^(-2 depth_weight)`` (noise of structured-light depth grows with z^2).  Both off by default."""
+    ``z^(-2 depth_weight)`` (noise of structured-light depth grows with z^2).  Both off by default.
+    ``max_points`` > 0: at each level at most about this many current points take part (an even
+    stride over them); the reference keeps its full resolution for the association."""
     fx, fy, cx, cy = intr
     T = np.eye(4) if init is None else np.array(init, np.float64)
     inl, frac, rmse = 0, 0.0, float("inf")
@@ -132,6 +134,8 @@ def icp_depth(ref_depth: np.ndarray, cur_depth: np.ndarray, intr, init: Optional
         cv = _vertices(cd, lfx, lfy, lcx, lcy)[cd > 0]
         if len(cv) < min_points or rok.sum() < min_points:
             return ICPResult(T, 0, 0.0, float("inf"), False)
+        if max_points > 0 and len(cv) > max_points:
+            cv = cv[:: int(np.ceil(len(cv) / max_points))]
         for _ in range(n_it):
             q = cv @ T[:3, :3].T + T[:3, 3]
             z = q[:, 2]

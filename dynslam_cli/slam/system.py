@@ -164,7 +164,7 @@ class SLAM:
         if tc.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
                             init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
-                            max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction)
+                            max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction, max_points=tc.icp_max_points)
             self.last_icp = res
             if res.ok and float(np.linalg.norm(res.T[:3, 3] - rel[:3, 3])) <= tc.max_jump:
                 rel = res.T
