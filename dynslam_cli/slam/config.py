@@ -22,8 +22,9 @@ class TrackingConfig:
                          "previous frame's depth (starting from the constant-velocity guess).")
     icp_factors: list = opt([8, 4, 2], "ICP pyramid: downsampling factors, coarse to fine (640x480 -> 80x60, 160x120, 320x240).")
     icp_iters: list = opt([8, 5, 3], "Gauss-Newton iterations per ICP level.")
-    icp_max_points: int = opt(20000, "ICP: at most about this many current points per pyramid level (an even stride; "
-                              "the reference stays whole); 0 = all.")
+    icp_max_points: int = opt(0, "ICP: at most about this many current points per pyramid level (an even stride; "
+                              "the reference stays whole); 0 = all. 20000 halves ICP time but cost 0.1-0.4 cm ATE on "
+                              "Bonn crowd frames 0-39.")
     icp_max_dist: float = opt(0.1, "ICP: associations farther apart than this (m) are rejected.")
     icp_min_fraction: float = opt(0.2, "ICP result is ignored (constant-velocity guess kept) when fewer of the current "
                                   "points associate.")
