@@ -139,6 +139,12 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     assert inst1.dynamic[pid1 - 1] and inst1.dynamic.sum() == 1
     assert mod.check_and_update(f1, inst1, pose, room_depth, None) is None
     assert mod.updates == 1
+    # told the person has stood still (stationary), the check labels it static despite the map
+    # (without the centre feature the replayed person keeps g from flipping it: not asserted)
+    stationary = np.zeros(inst1.count, bool)
+    stationary[pid1 - 1] = True
+    rec_still = mod.check_and_update(f1, inst1, pose, room_depth, None, None, stationary)
+    assert rec_still is not None and not any(rec_still.labels) and mod.updates == 2
     json_line = rec.to_json()
     assert set(json_line) >= {"frame", "instances", "labels", "loss_before", "loss_after", "replay_size"}
     import json

@@ -167,3 +167,23 @@ def test_closest_rendered_forgives_blurred_edges_not_movers():
     assert out[8, 10] == 1.0  # edge pixel: a neighbour agrees
     assert out[3, 16] == 3.0  # mover interior: nothing near agrees, still 2.2 m inconsistent
     np.testing.assert_array_equal(DynamicLoop.closest_rendered(ren, obs, radius=0), ren)
+
+
+def test_stationary_instances_know_what_stayed_put():
+    from dynslam_cli.slam.keyframes import stationary_instances
+
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    wall = np.full((48, 64), 3.0, np.float32)
+    ids = np.zeros((48, 64), np.int32)
+    ids[10:30, 10:25] = 1  # a box that has stood here all along
+    ids[10:30, 40:55] = 2  # a box that just arrived
+    now = wall.copy()
+    now[10:30, 10:25] = 1.5
+    now[10:30, 40:55] = 1.5
+    before = wall.copy()
+    before[10:30, 10:25] = 1.5  # the keyframes saw box 1 but only the wall where box 2 now is
+    kfs = [SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(before)) for _ in range(2)]
+    assert stationary_instances(now, ids, np.eye(4), intr, kfs).tolist() == [True, False]
+    assert not stationary_instances(now, ids, np.eye(4), intr, kfs[:1]).any()  # one keyframe is not enough
+    gone = [SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(wall)), kfs[0]]
+    assert stationary_instances(now, ids, np.eye(4), intr, gone).tolist() == [False, False]

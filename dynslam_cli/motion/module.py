@@ -138,7 +138,8 @@ class MotionModule:
 
     def check_and_update(self, frame, inst: FrameInstances, pose_c2w: np.ndarray, rendered_depth: np.ndarray,
                          rendered_rgb: Optional[np.ndarray],
-                         forward_valid: Optional[np.ndarray] = None) -> Optional[UpdateRecord]:
+                         forward_valid: Optional[np.ndarray] = None,
+                         stationary: Optional[np.ndarray] = None) -> Optional[UpdateRecord]:
         m = self.m
         t0 = time.perf_counter()
         H, W = frame.depth.shape[:2]
@@ -155,6 +156,9 @@ class MotionModule:
         inst._feats = feats  # type: ignore[attr-defined]
         judged = res.judged if res.judged is not None else np.ones(inst.count, bool)
         labels = res.observed_moving
+        if stationary is not None and len(stationary) == inst.count:  # stayed put: static at its place
+            judged = judged | stationary
+            labels = labels & ~stationary
         pred = self.classifier.predict(feats)
         # things that left: encode flagged segments of the rendered view (label dynamic)
         extra = np.zeros((0, self.in_dim), np.float32)

@@ -31,3 +31,6 @@ class RunConfig:
     retrack_fraction: float = opt(0.02, "Dynamic mode: when a classifier update newly marks more than this fraction of "
                                   "the frame's valid pixels dynamic, the frame is tracked again without them "
                                   "(the paper tracks once); 0 = never.")
+    still_frames: int = opt(10, "Dynamic mode with motion.centre_feature: an instance whose 3-D points every keyframe of "
+                            "the last this-many frames (two or more) saw at the same depth has stayed put and is "
+                            "labelled static at its place, whatever the map says; 0 = off.")

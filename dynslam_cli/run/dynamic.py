@@ -37,6 +37,7 @@ class DynamicLoop:
         self.warmup = int(cfg.run.check_warmup)
         self.retrack_fraction = float(cfg.run.retrack_fraction)
         self.occlusion_aware = bool(cfg.run.check_occlusion)
+        self.still_frames = int(cfg.run.still_frames)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -85,6 +86,18 @@ class DynamicLoop:
                                                 self.mm.m.depth_threshold)
         out[~frustum] = 0.0
         return out, observed if self.occlusion_aware else np.ones_like(observed)
+
+    def stationary(self, depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray) -> Optional[np.ndarray]:
+        """Instances that stayed put over the last ``run.still_frames`` frames (see
+        :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None unless the centre feature is
+        on (without it, 'static' would be learnt for the object everywhere, not at its place)."""
+        if self.still_frames <= 0 or not self.mm.m.centre_feature:
+            return None
+        from dynslam_cli.slam.keyframes import stationary_instances
+
+        now = self.slam.n_frames - 1
+        window = [kf for kf in self.slam.keyframes if now - self.still_frames <= kf.frame_id < now]
+        return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, self.mm.m.depth_threshold)
 
     def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of
@@ -151,7 +164,8 @@ class DynamicLoop:
             if self.check_radius > 0:
                 r_depth = self.closest_rendered(r_depth, judged.depth, self.check_radius)
             before = inst.static_mask.copy()
-            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok)
+            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok,
+                                              self.stationary(frame.depth, inst.ids, tr.pose_c2w))
             if record is not None and self.retrack_fraction > 0:
                 valid = np.asarray(frame.depth) > 0
                 newly = int((before & ~inst.static_mask & valid).sum())

@@ -27,21 +27,28 @@ class Keyframe:
     # (M, 2) int32: the largest and smallest instance id within the dynamic mask's dilation radius
     # of each ray (None = not kept); a ray is unusable when any of its ids is dynamic
     near_ids: np.ndarray | None = None
+    # the keyframe's whole depth map (movers included) every DEPTH_STRIDE pixels (float16; None = not
+    # kept): what the camera saw, for stationary_instances
+    depth_raw_small: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.depth)
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("frame_id", "timestamp", "pixels", "rgb", "depth",
-                                              "instance_ids", "usable", "pose_c2w", "depth_small", "near_ids")}
+                                              "instance_ids", "usable", "pose_c2w", "depth_small", "near_ids",
+                                              "depth_raw_small")}
 
     @staticmethod
     def from_dict(d: dict) -> "Keyframe":
-        small, near = d.get("depth_small"), d.get("near_ids")
+        def opt_array(key):
+            v = d.get(key)
+            return None if v is None else np.asarray(v)
+
         return Keyframe(int(d["frame_id"]), float(d["timestamp"]), np.asarray(d["pixels"]), np.asarray(d["rgb"]),
                         np.asarray(d["depth"]), np.asarray(d["instance_ids"]), np.array(d["usable"], bool),
-                        np.array(d["pose_c2w"], np.float64), None if small is None else np.asarray(small),
-                        None if near is None else np.asarray(near))
+                        np.array(d["pose_c2w"], np.float64), opt_array("depth_small"), opt_array("near_ids"),
+                        opt_array("depth_raw_small"))
 
 
 DEPTH_STRIDE = 4
@@ -137,3 +144,50 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
         return cv2.resize(m.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
 
     return up(frustum), up(observed)
+
+
+def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray, intr, keyframes,
+                         tolerance: float = 0.3, min_seen: float = 0.5, min_agree: float = 0.8,
+                         step: int = 4) -> np.ndarray:
+    """(K,) bool for instance ids 1..K: the instance's 3-D points (at ``pose_c2w``) are where every
+    one of ``keyframes`` saw a surface too, i.e. it has stayed put since the oldest of them.
+
+    For each keyframe at least ``min_seen`` of the instance's points must project inside it onto a
+    valid raw depth (``depth_raw_small``), and of those at least ``min_agree`` must lie within
+    ``tolerance`` (m) of that depth.  Needs two keyframes or more; False otherwise."""
+    k = int(ids.max(initial=0))
+    out = np.zeros(k, bool)
+    kfs = [kf for kf in keyframes if kf.depth_raw_small is not None]
+    if k == 0 or len(kfs) < 2:
+        return out
+    d = np.asarray(depth, np.float32)[::step, ::step]
+    lab = np.asarray(ids)[::step, ::step]
+    vs, us = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
+    m = (d > 0) & (lab > 0)
+    if not m.any():
+        return out
+    z = d[m]
+    pts = np.stack([(us[m] - intr.cx) / intr.fx * z, (vs[m] - intr.cy) / intr.fy * z, z], 1)
+    world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+    lab = lab[m] - 1
+    n = np.bincount(lab, minlength=k)[:k]
+    ok = n > 0
+    H, W = depth.shape
+    for kf in kfs:
+        T = np.linalg.inv(kf.pose_c2w)
+        pc = world @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
+            v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
+        inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        small = kf.depth_raw_small
+        hs, ws = small.shape
+        iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+        iv = np.clip(np.round(np.where(inside, v, 0) / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+        d_kf = small[iv, iu].astype(np.float32)
+        seen = inside & (d_kf > 0)
+        agree = seen & (np.abs(d_kf - pc[:, 2]) <= tolerance)
+        n_seen = np.bincount(lab[seen], minlength=k)[:k]
+        n_agree = np.bincount(lab[agree], minlength=k)[:k]
+        ok &= (n_seen >= min_seen * n) & (n_agree >= min_agree * np.maximum(n_seen, 1))
+    return ok

@@ -342,7 +342,8 @@ class SLAM:
         usable = np.ones(len(sel), bool) if cur.mask is None else cur.mask.reshape(-1)[sel].copy()
         kf = Keyframe(cur.idx, cur.timestamp, uv, cur.rgb_np.reshape(-1, 3)[sel].copy(),
                       cur.depth_np.reshape(-1)[sel].copy(), ids, usable, self.poses[cur.idx].copy(),
-                      subsample_depth(self._masked_depth(cur)))  # what the map was taught: static pixels
+                      subsample_depth(self._masked_depth(cur)),  # what the map was taught: static pixels
+                      depth_raw_small=subsample_depth(cur.depth_np))
         self.keyframes.append(kf)
         self._kf_cache = None
 
