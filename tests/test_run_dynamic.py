@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
 from dynslam_cli.run.dynamic import DynamicLoop
-from dynslam_cli.slam.keyframes import subsample_depth
+from dynslam_cli.slam.keyframes import Keyframe, subsample_depth
 
 TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
         "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20", "--set", "mapping.first_rays=256",
@@ -187,3 +187,17 @@ def test_stationary_instances_know_what_stayed_put():
     assert not stationary_instances(now, ids, np.eye(4), intr, kfs[:1]).any()  # one keyframe is not enough
     gone = [SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(wall)), kfs[0]]
     assert stationary_instances(now, ids, np.eye(4), intr, gone).tolist() == [False, False]
+
+
+def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():
+    from dynslam_cli.slam.keyframes import forget_near
+
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    pixels = np.array([[31, 23], [10, 10], [50, 40]], np.int32)  # (u, v): centre, top-left, bottom-right
+    kf = Keyframe(0, 0.0, pixels, np.zeros((3, 3), np.uint8), np.array([1.0, 3.0, 3.0], np.float32),
+                  np.zeros(3, np.int32), np.ones(3, bool), np.eye(4))
+    left = np.array([[-0.01, 0.0, 1.0], [0.02, 0.01, 1.01]])  # the surface seen gone: the centre ray's point
+    assert forget_near([kf], left, intr, 0.05) == 1
+    assert kf.gone.tolist() == [True, False, False] and kf.usable.tolist() == [False, True, True]
+    assert forget_near([kf], left, intr, 0.05) == 0  # already gone
+    assert forget_near([kf], np.zeros((0, 3)), intr, 0.05) == 0

@@ -38,6 +38,8 @@ class DynamicLoop:
         self.retrack_fraction = float(cfg.run.retrack_fraction)
         self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.still_frames = int(cfg.run.still_frames)
+        self.forget_radius = float(cfg.run.forget_radius)
+        self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -57,6 +59,9 @@ class DynamicLoop:
             kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
             if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
                 kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)
+            gone = getattr(kf, "gone", None)
+            if gone is not None:  # surfaces seen gone stay forgotten
+                kf.usable &= ~gone
             masked += int((~kf.usable).sum())
         return masked
 
@@ -98,6 +103,35 @@ class DynamicLoop:
         now = self.slam.n_frames - 1
         window = [kf for kf in self.slam.keyframes if now - self.still_frames <= kf.frame_id < now]
         return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, self.mm.m.depth_threshold)
+
+    def forget_departed(self, res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray) -> int:
+        """With ``run.forget_radius`` > 0: the keyframe rays on the surface of what the backward
+        check saw leave (flagged rendered segments, where the observation lies more than t_d
+        behind the map) are marked gone, so the map stops replaying a departed object even when
+        the classifier does not recognise its keyframe crops.  Returns the rays newly marked."""
+        if self.forget_radius <= 0 or res is None or res.rendered_ids is None or not len(res.rendered_flagged):
+            return 0
+        import cv2
+
+        from dynslam_cli.slam.keyframes import forget_near
+
+        rids = res.rendered_ids
+        h, w = rids.shape
+        ren = cv2.resize(rendered.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        left = np.isin(rids, res.rendered_flagged) & (ren > 0) & (obs > 0) & (obs - ren > self.mm.m.depth_threshold)
+        if not left.any():
+            return 0
+        intr = self.slam.intr
+        sx, sy = w / observed.shape[1], h / observed.shape[0]
+        fx, fy, cx, cy = intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5
+        vs, us = np.nonzero(left)
+        z = ren[vs, us].astype(np.float64)
+        pc = np.stack([(us - cx) / fx * z, (vs - cy) / fy * z, z], 1)
+        pw = pc @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+        n = forget_near(self.slam.keyframes, pw, intr, self.forget_radius)
+        self.forgotten += n
+        return n
 
     def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of
@@ -166,6 +200,7 @@ class DynamicLoop:
             before = inst.static_mask.copy()
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok,
                                               self.stationary(frame.depth, inst.ids, tr.pose_c2w))
+            self.forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w)
             if record is not None and self.retrack_fraction > 0:
                 valid = np.asarray(frame.depth) > 0
                 newly = int((before & ~inst.static_mask & valid).sum())

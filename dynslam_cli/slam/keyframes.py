@@ -30,6 +30,8 @@ class Keyframe:
     # the keyframe's whole depth map (movers included) every DEPTH_STRIDE pixels (float16; None = not
     # kept): what the camera saw, for stationary_instances
     depth_raw_small: np.ndarray | None = None
+    # (M,) bool: rays whose surface point a later frame saw gone (a departed object); never usable
+    gone: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.depth)
@@ -37,7 +39,7 @@ class Keyframe:
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("frame_id", "timestamp", "pixels", "rgb", "depth",
                                               "instance_ids", "usable", "pose_c2w", "depth_small", "near_ids",
-                                              "depth_raw_small")}
+                                              "depth_raw_small", "gone")}
 
     @staticmethod
     def from_dict(d: dict) -> "Keyframe":
@@ -48,7 +50,7 @@ class Keyframe:
         return Keyframe(int(d["frame_id"]), float(d["timestamp"]), np.asarray(d["pixels"]), np.asarray(d["rgb"]),
                         np.asarray(d["depth"]), np.asarray(d["instance_ids"]), np.array(d["usable"], bool),
                         np.array(d["pose_c2w"], np.float64), opt_array("depth_small"), opt_array("near_ids"),
-                        opt_array("depth_raw_small"))
+                        opt_array("depth_raw_small"), opt_array("gone"))
 
 
 DEPTH_STRIDE = 4
@@ -191,3 +193,29 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
         n_agree = np.bincount(lab[agree], minlength=k)[:k]
         ok &= (n_seen >= min_seen * n) & (n_agree >= min_agree * np.maximum(n_seen, 1))
     return ok
+
+
+def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
+    """Mark as ``gone`` (never usable again) the keyframe rays whose surface point lies within
+    ``radius`` (m) of any of ``points`` (N, 3; world): geometry a later frame saw has left.
+    Returns the number of rays newly marked."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0 or not keyframes:
+        return 0
+    tree = cKDTree(points)
+    newly = 0
+    for kf in keyframes:
+        u = kf.pixels[:, 0].astype(np.float64)
+        v = kf.pixels[:, 1].astype(np.float64)
+        z = kf.depth.astype(np.float64)
+        pc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], 1)
+        pw = pc @ kf.pose_c2w[:3, :3].T + kf.pose_c2w[:3, 3]
+        d, _ = tree.query(pw, distance_upper_bound=radius)
+        hit = np.isfinite(d)
+        if kf.gone is None:
+            kf.gone = np.zeros(len(kf), bool)
+        newly += int((hit & ~kf.gone).sum())
+        kf.gone |= hit
+        kf.usable &= ~kf.gone
+    return newly
