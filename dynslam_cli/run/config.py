@@ -34,7 +34,7 @@ class RunConfig:
     still_frames: int = opt(10, "Dynamic mode with motion.centre_feature: an instance whose 3-D points every keyframe of "
                             "the last this-many frames (two or more) saw at the same depth has stayed put and is "
                             "labelled static at its place, whatever the map says; 0 = off.")
-    forget_radius: float = opt(0.0, "Dynamic mode: keyframe rays within this distance (m) of the surface of something the "
-                               "backward check saw leave are forgotten for good (a departed object the classifier does "
-                               "not recognise in its keyframe crops); 0 = off (the paper forgets through the classifier "
-                               "only).")
+    forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
+                               "the backward check saw leave are forgotten for good (a departed object the classifier "
+                               "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "
+                               "classifier only).")
