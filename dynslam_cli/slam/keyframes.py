@@ -98,6 +98,18 @@ def depth_edges(depth: np.ndarray, rel_jump: float = 0.05, dilate: int = 2) -> n
     return cv2.dilate(jump.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
 
 
+def _project(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int):
+    """World points into a camera: camera-frame points, pixel u, v and whether each lands inside
+    the W×H image in front of the camera."""
+    T = np.linalg.inv(pose_c2w)
+    pc = world @ T[:3, :3].T + T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
+        v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
+    inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    return pc, u, v, inside
+
+
 def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
                         occlusion_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
     """What the keyframes saw of the current frame's back-projected points (at ``pose_c2w``).
@@ -125,12 +137,7 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     frustum = np.zeros(len(world), bool)
     observed = np.zeros(len(world), bool)
     for kf in keyframes:
-        T = np.linalg.inv(kf.pose_c2w)
-        pc = world @ T[:3, :3].T + T[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
-            v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
-        inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
         frustum |= inside
         small = kf.depth_small
         if small is not None and inside.any():
@@ -176,12 +183,7 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     ok = n > 0
     H, W = depth.shape
     for kf in kfs:
-        T = np.linalg.inv(kf.pose_c2w)
-        pc = world @ T[:3, :3].T + T[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
-            v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
-        inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
         small = kf.depth_raw_small
         hs, ws = small.shape
         iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
