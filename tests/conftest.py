@@ -14,6 +14,16 @@ os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(autouse=True, scope="module")
+def restore_threads():
+    """Tests that run SLAM set torch's thread count (run.threads); put it back after each module."""
+    import torch
+
+    old = torch.get_num_threads()
+    yield
+    torch.set_num_threads(old)
+
+
 def shared_root() -> Path:
     return Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))
 

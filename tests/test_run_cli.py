@@ -2,7 +2,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
@@ -18,13 +17,6 @@ TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set",
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
     return write_sequence(tmp_path_factory.mktemp("clip") / "toybox", n=6, width=80, height=60)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def restore_threads():
-    old = torch.get_num_threads()
-    yield
-    torch.set_num_threads(old)
 
 
 def _run(args):

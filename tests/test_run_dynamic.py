@@ -5,7 +5,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
@@ -28,13 +27,6 @@ def walker(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "walker"
     render_preset("walker", out, SynthConfig(width=96, height=72, frames=10, seed=3), progress=False)
     return out
-
-
-@pytest.fixture(autouse=True, scope="module")
-def restore_threads():
-    old = torch.get_num_threads()
-    yield
-    torch.set_num_threads(old)
 
 
 def _traj(path):

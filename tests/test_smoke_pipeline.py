@@ -3,8 +3,6 @@ all through the command line, in both modes."""
 
 import json
 
-import pytest
-import torch
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
@@ -16,13 +14,6 @@ TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set",
         "--set", "run.mesh_resolution=0.08", "--set", "motion.encoder=color-hist", "--set", "motion.check_width=48",
         "--set", "run.check_warmup=2", "--set", "synth.width=96", "--set", "synth.height=72",
         "--set", "synth.frames=12", "--set", "synth.seed=5"]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def restore_threads():
-    old = torch.get_num_threads()
-    yield
-    torch.set_num_threads(old)
 
 
 def _ok(args):
