@@ -113,6 +113,7 @@ class DynamicLoop:
             return 0
         import cv2
 
+        from dynslam_cli.geometry.camera import pixel_dirs, transform
         from dynslam_cli.slam.keyframes import forget_near
 
         rids = res.rendered_ids
@@ -126,9 +127,7 @@ class DynamicLoop:
         sx, sy = w / observed.shape[1], h / observed.shape[0]
         fx, fy, cx, cy = intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5
         vs, us = np.nonzero(left)
-        z = ren[vs, us].astype(np.float64)
-        pc = np.stack([(us - cx) / fx * z, (vs - cy) / fy * z, z], 1)
-        pw = pc @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+        pw = transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
         n = forget_near(self.slam.keyframes, pw, intr, self.forget_radius)
         self.forgotten += n
         return n

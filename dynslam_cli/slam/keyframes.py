@@ -10,6 +10,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dynslam_cli.geometry.camera import pixel_dirs, project, transform
+from dynslam_cli.geometry.lie import inv_np
+
 
 @dataclass
 class Keyframe:
@@ -101,12 +104,10 @@ def depth_edges(depth: np.ndarray, rel_jump: float = 0.05, dilate: int = 2) -> n
 def _project(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int):
     """World points into a camera: camera-frame points, pixel u, v and whether each lands inside
     the W×H image in front of the camera."""
-    T = np.linalg.inv(pose_c2w)
-    pc = world @ T[:3, :3].T + T[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
-        v = intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
-    inside = (pc[:, 2] > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    pc = transform(inv_np(pose_c2w), world)
+    uv, z = project(pc, intr.fx, intr.fy, intr.cx, intr.cy)
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     return pc, u, v, inside
 
 
@@ -132,8 +133,8 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
         return np.zeros((H, W), bool), np.zeros((H, W), bool)
     vs, us = np.mgrid[0:H:step, 0:W:step]
     z = d[::step, ::step]
-    pts = np.stack([(us - intr.cx) / intr.fx * z, (vs - intr.cy) / intr.fy * z, z], -1).reshape(-1, 3)
-    world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+    pts = pixel_dirs(us.ravel(), vs.ravel(), intr.fx, intr.fy, intr.cx, intr.cy) * z.reshape(-1, 1)
+    world = transform(pose_c2w, pts)
     frustum = np.zeros(len(world), bool)
     observed = np.zeros(len(world), bool)
     for kf in keyframes:
@@ -176,8 +177,7 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     if not m.any():
         return out
     z = d[m]
-    pts = np.stack([(us[m] - intr.cx) / intr.fx * z, (vs[m] - intr.cy) / intr.fy * z, z], 1)
-    world = pts @ pose_c2w[:3, :3].T + pose_c2w[:3, 3]
+    world = transform(pose_c2w, pixel_dirs(us[m], vs[m], intr.fx, intr.fy, intr.cx, intr.cy) * z[:, None])
     lab = lab[m] - 1
     n = np.bincount(lab, minlength=k)[:k]
     ok = n > 0
@@ -208,11 +208,8 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     tree = cKDTree(points)
     newly = 0
     for kf in keyframes:
-        u = kf.pixels[:, 0].astype(np.float64)
-        v = kf.pixels[:, 1].astype(np.float64)
-        z = kf.depth.astype(np.float64)
-        pc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], 1)
-        pw = pc @ kf.pose_c2w[:3, :3].T + kf.pose_c2w[:3, 3]
+        pc = pixel_dirs(kf.pixels[:, 0], kf.pixels[:, 1], intr.fx, intr.fy, intr.cx, intr.cy) * kf.depth[:, None]
+        pw = transform(kf.pose_c2w, pc)
         d, _ = tree.query(pw, distance_upper_bound=radius)
         hit = np.isfinite(d)
         if kf.gone is None:
