@@ -248,14 +248,13 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
                 bar.set_postfix(post)
                 bar.update(1)
             done = i + 1
-            if cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n:
+            stop = cfg.run.stop_after > 0 and processed >= cfg.run.stop_after and done < n
+            periodic = cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n
+            if periodic or stop:
                 _save_checkpoint(ckpt, slam, done, timings, cfg_yaml, loop)
                 if loop is not None:
                     loop.write_updates(updates_path)
-            if cfg.run.stop_after > 0 and processed >= cfg.run.stop_after and done < n:
-                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml, loop)
-                if loop is not None:
-                    loop.write_updates(updates_path)
+            if stop:
                 meta.update(status="interrupted", error=f"stopped after {processed} frames (run.stop_after)")
                 write_json_atomic(run_json, meta)
                 return RunResult("interrupted", out, done, 0.0, {"run": run_json, "checkpoint": ckpt})
