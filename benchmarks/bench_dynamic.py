@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -39,17 +38,12 @@ MODES = {
 
 
 def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> dict:
-    from dynslam_cli.commands._common import resolve_config
+    from _bench import run_or_reuse
+
     from dynslam_cli.eval.ate import evaluate_run_ate
     from dynslam_cli.eval.masks import evaluate_run_masks
-    from dynslam_cli.run.runner import run_sequence
 
-    done = out / "run.json"
-    if fresh and out.exists():
-        shutil.rmtree(out)
-    if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
-        cfg = resolve_config(spec, None, sets + MODES[mode] + ["run.save_masks=true"])
-        run_sequence(spec, cfg, out_dir=out, progress=True)
+    run_or_reuse(spec, sets + MODES[mode] + ["run.save_masks=true"], out, fresh)
     ate = evaluate_run_ate(out, plot=False)
     row = {"case": spec, "mode": mode, "ate_cm": 100 * ate.rmse_m, "still_cm": 100 * ate.rmse_still_m}
     timing = json.loads((out / "timing.json").read_text())

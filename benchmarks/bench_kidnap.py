@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import sys
 import tempfile
 import time
@@ -66,16 +65,9 @@ SEEN_DEPTH = 0.03  # m: a sample is seen when the ground-truth depth at its pixe
 
 def run_variant(spec: str, sets: list[str], out: Path, fresh: bool) -> float:
     """Run (or reuse) one variant into ``out``; returns the run's wall seconds."""
-    from dynslam_cli.commands._common import resolve_config
-    from dynslam_cli.run.runner import run_sequence
+    from _bench import run_or_reuse
 
-    done = out / "run.json"
-    if fresh and out.exists():
-        shutil.rmtree(out)
-    if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
-        cfg = resolve_config(spec, None, sets)
-        run_sequence(spec, cfg, out_dir=out, progress=True)
-    meta = json.loads(done.read_text())
+    meta = run_or_reuse(spec, sets, out, fresh)
     return (datetime.fromisoformat(meta["finished"]) - datetime.fromisoformat(meta["started"])).total_seconds()
 
 

@@ -26,34 +26,19 @@ sys.path.insert(0, str(REPO))
 BONN = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared")) / "data" / "bonn_crowd_150_449_s2"
 
 
-def umeyama_se3(src: np.ndarray, dst: np.ndarray):
-    """R, t minimising ||dst - (R src + t)|| (no scale)."""
-    ms, md = src.mean(0), dst.mean(0)
-    cov = (dst - md).T @ (src - ms) / len(src)
-    u, _, vt = np.linalg.svd(cov)
-    d = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2, 2] = -1
-    r = u @ d @ vt
-    return r, md - r @ ms
-
-
 def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:
-    r, t = umeyama_se3(est, gt)
-    e = est @ r.T + t - gt
-    return float(np.sqrt((e ** 2).sum(1).mean()))
+    """Translation RMSE after the SE(3) Umeyama alignment of ``est`` onto ``gt`` (N×3 each)."""
+    from dynslam_cli.geometry.align import apply_similarity, umeyama
 
-
-def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    rows = np.array([[float(v) for v in ln.split()] for ln in path.read_text().splitlines()
-                     if ln.strip() and not ln.startswith("#")])
-    return rows[:, 0], rows[:, 1:4]
+    r, t, _ = umeyama(est, gt)
+    return float(np.sqrt(((apply_similarity(est, r, t) - gt) ** 2).sum(1).mean()))
 
 
 def run_case(name: str, spec: str, dataset: str, frames: int, sets: list[str], threads: int) -> dict:
     from dynslam_cli.config import load_config
     from dynslam_cli.data.names import identify
     from dynslam_cli.data.open import open_sequence
+    from dynslam_cli.eval.ate import read_tum
     from dynslam_cli.run.runner import run_sequence
 
     sid = identify(spec)
@@ -66,7 +51,7 @@ def run_case(name: str, spec: str, dataset: str, frames: int, sets: list[str], t
         t0 = time.perf_counter()
         res = run_sequence(spec, cfg, out_dir=Path(tmp) / "run", progress=False)
         wall = time.perf_counter() - t0
-        stamps, est = read_tum(res.out_dir / "traj_est.txt")
+        stamps, est, _ = read_tum(res.out_dir / "traj_est.txt")
         timing = json.loads((res.out_dir / "timing.json").read_text())
     assert np.allclose(stamps, seq.timestamps, atol=1e-5)
     still = np.repeat(gt[:1], len(gt), 0)
