@@ -39,6 +39,11 @@ class Keyframe:
     def __len__(self) -> int:
         return len(self.depth)
 
+    def world_points(self, intr) -> np.ndarray:
+        """(M, 3) world points of the stored rays (pixels back-projected at their depth, posed)."""
+        dirs = pixel_dirs(self.pixels[:, 0], self.pixels[:, 1], intr.fx, intr.fy, intr.cx, intr.cy)
+        return transform(self.pose_c2w, dirs * self.depth[:, None])
+
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("frame_id", "timestamp", "pixels", "rgb", "depth",
                                               "instance_ids", "usable", "pose_c2w", "depth_small", "near_ids",
@@ -208,9 +213,7 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     tree = cKDTree(points)
     newly = 0
     for kf in keyframes:
-        pc = pixel_dirs(kf.pixels[:, 0], kf.pixels[:, 1], intr.fx, intr.fy, intr.cx, intr.cy) * kf.depth[:, None]
-        pw = transform(kf.pose_c2w, pc)
-        d, _ = tree.query(pw, distance_upper_bound=radius)
+        d, _ = tree.query(kf.world_points(intr), distance_upper_bound=radius)
         hit = np.isfinite(d)
         if kf.gone is None:
             kf.gone = np.zeros(len(kf), bool)

@@ -532,11 +532,7 @@ class SLAM:
                 (rgb.view(h, w, 3).cpu().numpy() * 255).clip(0, 255).astype(np.uint8))
 
     def observed_points(self, max_points: int = 2_000_000) -> np.ndarray:
-        pts = []
-        for k in self.keyframes:
-            dirs = pixel_dirs(k.pixels[:, 0], k.pixels[:, 1], self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy)
-            p = dirs * k.depth[:, None]
-            pts.append(p @ k.pose_c2w[:3, :3].T + k.pose_c2w[:3, 3])
+        pts = [k.world_points(self.intr) for k in self.keyframes]
         if not pts:
             return np.zeros((0, 3))
         p = np.concatenate(pts)
