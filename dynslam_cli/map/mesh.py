@@ -12,20 +12,13 @@ from dynslam_cli.errors import DynslamError
 
 
 @torch.no_grad()
-def query_sdf(model, pts: np.ndarray, device, chunk: int = 1 << 16) -> np.ndarray:
-    out = np.empty(len(pts), np.float32)
+def query(model, pts: np.ndarray, device, color: bool = False, chunk: int = 1 << 16) -> np.ndarray:
+    """The map at world points ``pts`` (N, 3), in chunks: SDF (N,) or, with ``color``, RGB (N, 3)."""
+    out = np.empty((len(pts), 3) if color else len(pts), np.float32)
     for i in range(0, len(pts), chunk):
         p = torch.from_numpy(np.ascontiguousarray(pts[i:i + chunk], dtype=np.float32)).to(device)
-        out[i:i + chunk] = model(p, color=False)[0].cpu().numpy()
-    return out
-
-
-@torch.no_grad()
-def query_rgb(model, pts: np.ndarray, device, chunk: int = 1 << 16) -> np.ndarray:
-    out = np.empty((len(pts), 3), np.float32)
-    for i in range(0, len(pts), chunk):
-        p = torch.from_numpy(np.ascontiguousarray(pts[i:i + chunk], dtype=np.float32)).to(device)
-        out[i:i + chunk] = model(p, color=True)[1].cpu().numpy()
+        sdf, rgb = model(p, color=color)
+        out[i:i + chunk] = (rgb if color else sdf).cpu().numpy()
     return out
 
 
@@ -61,11 +54,11 @@ def extract_mesh(model, observed_pts: np.ndarray, voxel: float, device, dilate_m
     # query only voxels near observations
     idx = np.nonzero(occ)
     pts = np.stack([xs[0][idx[0]], xs[1][idx[1]], xs[2][idx[2]]], -1)
-    sdf[idx] = query_sdf(model, pts, device)
+    sdf[idx] = query(model, pts, device)
     if not (sdf.min() < 0 < sdf.max()):
         return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64))
     verts, faces, _, _ = measure.marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3, mask=occ)
     verts = verts + lo
-    rgb = query_rgb(model, verts, device)
+    rgb = query(model, verts, device, color=True)
     colors = np.concatenate([(rgb * 255).clip(0, 255).astype(np.uint8), np.full((len(verts), 1), 255, np.uint8)], 1)
     return trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)
