@@ -7,7 +7,8 @@ of the values, the x gradient and the table gradient.
     .venv/bin/python benchmarks/bench_hashgrid.py [--reps 10] [--finest 400] [--log2 16] [--threads N]
 
 ``--kernels`` also times the alternative parallel layouts of the numba kernels (forward over
-points vs over levels; x gradient over points vs over levels + reduction), interleaved.
+points vs over levels vs with the Jacobian stored; x gradient over points vs over levels +
+reduction vs the contraction of the stored Jacobian), interleaved.
 The machine is shared: the min is printed beside the median as a less noisy figure.
 """
 
@@ -81,11 +82,15 @@ def _layout_fns(grid: HashGrid, n: int) -> dict:
         K.backward_levels(x, table, go, res, dense, False, True, empty, part)
         K.reduce_x(x, part, gx)
 
+    jac = np.empty((n_lv, n, table.shape[2], 3), np.float32)
+    K.forward_levels_jac(x, table, res, dense, out, jac)
     return {
         "forward over points": lambda: K.forward_points(x, table, res, dense, out),
         "forward over levels": lambda: K.forward_levels(x, table, res, dense, out),
+        "forward+jacobian": lambda: K.forward_levels_jac(x, table, res, dense, out, jac),
         "dx over points": lambda: K.backward_x_points(x, table, go, res, dense, gx),
         "dx over levels+reduce": x_levels,
+        "dx from jacobian": lambda: K.contract_jac(x, jac, go, gx),
     }
 
 
@@ -106,7 +111,7 @@ def kernel_layouts(grid: HashGrid, reps: int) -> None:
                 f()
                 ts[k].append(1e3 * (time.perf_counter() - t0))
         for k, v in ts.items():
-            print(f"  N={n:<6} {k:<22} {statistics.median(v):7.2f} / {min(v):6.2f}")
+            print(f"  N={n:<6} {k:<24} {statistics.median(v):7.2f} / {min(v):6.2f}")
 
 
 def main() -> None:

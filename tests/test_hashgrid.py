@@ -136,15 +136,15 @@ def test_gradcheck_reference_float64():
 
 
 # ---------------------------------------------------------------------------- fast path vs reference
-@pytest.mark.parametrize("layout", ["levels", "points"])
+@pytest.mark.parametrize("layout", [("levels", "levels"), ("points", "points"), ("levels", "jacobian")])
 @pytest.mark.parametrize("cfg", [
     dict(n_levels=16, n_features=2, log2_hashmap_size=12, base_resolution=16, finest_resolution=300),
     dict(n_levels=4, n_features=3, log2_hashmap_size=9, base_resolution=3, finest_resolution=40),
     dict(n_levels=1, n_features=1, log2_hashmap_size=14, base_resolution=16, finest_resolution=16),
 ])
 def test_numba_matches_reference(cfg, layout, monkeypatch):
-    monkeypatch.setattr(numba_kernels, "FORWARD_PARALLEL", layout)
-    monkeypatch.setattr(numba_kernels, "X_GRAD_PARALLEL", layout)
+    monkeypatch.setattr(numba_kernels, "FORWARD_PARALLEL", layout[0])
+    monkeypatch.setattr(numba_kernels, "X_GRAD_PARALLEL", layout[1])
     g = make_grid("torch", **cfg)
     assert g.resolve_impl(torch.zeros(1, 3)) == "torch"
     x = tricky_points(600, res=tuple(g.resolutions[:3]))
@@ -168,8 +168,11 @@ def test_numba_matches_reference(cfg, layout, monkeypatch):
     assert rel_err(gtab_only, gtr) < 1e-5
     g.embeddings.requires_grad_(False)
     xo = x.clone().requires_grad_()
-    (gx_only,) = torch.autograd.grad(g(xo), xo, go)
+    yo = g(xo)
+    assert rel_err(yo, yr) < 1e-5
+    (gx_only,) = torch.autograd.grad(yo, xo, go)
     assert rel_err(gx_only, gxr) < 1e-5
+    assert (gx_only[outside] == 0).all()
 
 
 def test_numba_gradients_of_a_loss_through_linear_layer():
@@ -227,7 +230,7 @@ def _spy_backward(monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize("x_parallel", ["levels", "points"])
+@pytest.mark.parametrize("x_parallel", ["levels", "points", "jacobian"])
 def test_frozen_table_gets_no_gradient_and_none_is_computed(monkeypatch, x_parallel):
     monkeypatch.setattr(numba_kernels, "X_GRAD_PARALLEL", x_parallel)
     g = make_grid("numba", n_levels=4, log2_hashmap_size=10, base_resolution=4, finest_resolution=64)
@@ -271,3 +274,33 @@ def test_non_contiguous_input_and_thread_count():
     finally:
         torch.set_num_threads(old)
     assert rel_err(y1, yr) < 1e-5
+
+
+def test_tracking_backward_is_a_contraction_of_the_forward_jacobian(monkeypatch):
+    # frozen table + x needing a gradient: the forward stores d out / d x, the backward never
+    # walks the table again; without autograd (or with a trainable table) no Jacobian is built
+    monkeypatch.setattr(numba_kernels, "X_GRAD_PARALLEL", "jacobian")
+    g = make_grid("numba", n_levels=5, log2_hashmap_size=9, base_resolution=3, finest_resolution=50)
+    jac_calls = []
+    real_fwd = numba_kernels.forward_levels_jac
+
+    def spy(*args):
+        jac_calls.append(args[-1].shape)
+        return real_fwd(*args)
+
+    monkeypatch.setattr(numba_kernels, "forward_levels_jac", spy)
+    calls = _spy_backward(monkeypatch)
+    x = tricky_points(120, res=tuple(g.resolutions[:3]))
+    g(x.clone().requires_grad_()).sum().backward()  # table trainable: the two-gradient pass
+    assert jac_calls == [] and len(calls) == 1
+    g.embeddings.requires_grad_(False)
+    with torch.no_grad():
+        g(x.clone().requires_grad_())
+    assert jac_calls == []
+    xo = x.clone().requires_grad_()
+    go = torch.randn(x.shape[0], g.out_dim)
+    g(xo).backward(go)
+    assert jac_calls == [(5, x.shape[0], 2, 3)] and len(calls) == 1  # no backward_levels call
+    xr = x.clone().requires_grad_()
+    g.forward_torch(xr).backward(go)
+    assert xr.grad.abs().max() > 0 and rel_err(xo.grad, xr.grad) < 1e-5

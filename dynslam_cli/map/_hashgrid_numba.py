@@ -137,6 +137,81 @@ def forward_levels(x, table, res, dense, out):
 
 
 @njit(parallel=True, fastmath=False, cache=True)
+def forward_levels_jac(x, table, res, dense, out, jac):
+    """:func:`forward_levels` (same values, same summation order) that also writes the Jacobian
+    ``jac[l, n, f, :]`` = d out[n, l*F+f] / d (clamped) x[n] (before the clamp mask): along x it is
+    ``R * sum over the 4 (y, z) corner pairs of (t(x=1) - t(x=0)) * w_y * w_z``, likewise for y, z.
+    The tracking backward then needs no second pass over the table (:func:`contract_jac`)."""
+    n_pts = x.shape[0]
+    n_lv, tsize, nf = table.shape
+    mask = np.int64(tsize - 1)
+    one = np.float32(1.0)
+    for lv in prange(n_lv):
+        r = res[lv]
+        rf = np.float32(r)
+        dn = dense[lv] != 0
+        for n in range(n_pts):
+            c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
+            c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
+            c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
+            ids = _corner_indices(c0, c1, c2, dn, r + 1, mask)
+            ws = _corner_weights(f0, f1, f2)
+            e0 = one - f0
+            e1 = one - f1
+            e2 = one - f2
+            for f in range(nf):
+                t0 = table[lv, ids[0], f]
+                t1 = table[lv, ids[1], f]
+                t2 = table[lv, ids[2], f]
+                t3 = table[lv, ids[3], f]
+                t4 = table[lv, ids[4], f]
+                t5 = table[lv, ids[5], f]
+                t6 = table[lv, ids[6], f]
+                t7 = table[lv, ids[7], f]
+                acc = np.float32(0.0)
+                acc += ws[0] * t0
+                acc += ws[1] * t1
+                acc += ws[2] * t2
+                acc += ws[3] * t3
+                acc += ws[4] * t4
+                acc += ws[5] * t5
+                acc += ws[6] * t6
+                acc += ws[7] * t7
+                out[n, lv * nf + f] = acc
+                jac[lv, n, f, 0] = rf * ((t1 - t0) * (e1 * e2) + (t3 - t2) * (f1 * e2)
+                                         + (t5 - t4) * (e1 * f2) + (t7 - t6) * (f1 * f2))
+                jac[lv, n, f, 1] = rf * ((t2 - t0) * (e0 * e2) + (t3 - t1) * (f0 * e2)
+                                         + (t6 - t4) * (e0 * f2) + (t7 - t5) * (f0 * f2))
+                jac[lv, n, f, 2] = rf * ((t4 - t0) * (e0 * e1) + (t5 - t1) * (f0 * e1)
+                                         + (t6 - t2) * (e0 * f1) + (t7 - t3) * (f0 * f1))
+
+
+@njit(parallel=True, fastmath=False, cache=True)
+def contract_jac(x, jac, grad_out, grad_x):
+    """grad_x[n, d] = sum over levels and features of grad_out[n, l*F+f] * jac[l, n, f, d], zero
+    where the clamp is active (as :func:`reduce_x`)."""
+    n_lv, _, nf, _ = jac.shape
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for n in prange(x.shape[0]):
+        g0 = zero
+        g1 = zero
+        g2 = zero
+        for lv in range(n_lv):
+            for f in range(nf):
+                go = grad_out[n, lv * nf + f]
+                g0 += go * jac[lv, n, f, 0]
+                g1 += go * jac[lv, n, f, 1]
+                g2 += go * jac[lv, n, f, 2]
+        v = x[n, 0]
+        grad_x[n, 0] = g0 if (v >= zero and v <= one) else zero
+        v = x[n, 1]
+        grad_x[n, 1] = g1 if (v >= zero and v <= one) else zero
+        v = x[n, 2]
+        grad_x[n, 2] = g2 if (v >= zero and v <= one) else zero
+
+
+@njit(parallel=True, fastmath=False, cache=True)
 def backward_levels(x, table, grad_out, res, dense, do_table, do_x, grad_table, gx_part):
     """Backward parallel over levels; the corner indices and weights are recomputed from x.
 
@@ -280,9 +355,11 @@ def backward_x_points(x, table, grad_out, res, dense, grad_x):
 # touches all levels.  Over levels measured 10-45 % faster single-threaded and equal or faster
 # with 2 threads.
 FORWARD_PARALLEL = "levels"
-# x gradient without the table gradient: "levels" (backward_levels + reduce_x) or "points"
-# (backward_x_points).  With the table gradient, backward_levels always computes both at once.
-X_GRAD_PARALLEL = "levels"
+# x gradient without the table gradient (tracking): "jacobian" (forward_levels_jac stores the
+# per-level Jacobian, the backward is contract_jac: one pass over the table instead of two),
+# "levels" (backward_levels + reduce_x) or "points" (backward_x_points).  With the table gradient,
+# backward_levels always computes both at once.
+X_GRAD_PARALLEL = "jacobian"
 _EMPTY3 = np.empty((0, 0, 0), np.float32)
 
 
@@ -299,12 +376,18 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 class _HashGridFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, res, dense):
+    def forward(ctx, x, table, res, dense, with_jac):
         _sync_threads()
         xn = _np(x)
         out = torch.empty(x.shape[0], table.shape[0] * table.shape[2], dtype=torch.float32)
-        fwd = forward_levels if FORWARD_PARALLEL == "levels" else forward_points
-        fwd(xn, _np(table), res, dense, out.numpy())
+        ctx.jac = None
+        if with_jac:
+            L, _, F = table.shape
+            ctx.jac = np.empty((L, x.shape[0], F, 3), np.float32)
+            forward_levels_jac(xn, _np(table), res, dense, out.numpy(), ctx.jac)
+        else:
+            fwd = forward_levels if FORWARD_PARALLEL == "levels" else forward_points
+            fwd(xn, _np(table), res, dense, out.numpy())
         ctx.save_for_backward(x, table)
         ctx.res = res
         ctx.dense = dense
@@ -317,16 +400,19 @@ class _HashGridFunction(torch.autograd.Function):
         need_x, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         grad_x = grad_table = None
         if not (need_x or need_table):
-            return None, None, None, None
+            return None, None, None, None, None
         _sync_threads()
         xn = _np(x)
         gn = _np(grad_out.to(torch.float32))
         tn = _np(table)
         if need_x:
             grad_x = torch.empty(x.shape, dtype=torch.float32)
+        if need_x and not need_table and ctx.jac is not None:
+            contract_jac(xn, ctx.jac, gn, grad_x.numpy())
+            return grad_x, None, None, None, None
         if need_x and not need_table and X_GRAD_PARALLEL == "points":
             backward_x_points(xn, tn, gn, ctx.res, ctx.dense, grad_x.numpy())
-            return grad_x, None, None, None
+            return grad_x, None, None, None, None
         if need_table:
             grad_table = torch.empty(table.shape, dtype=torch.float32)  # zeroed by the kernel
             gt = grad_table.numpy()
@@ -336,7 +422,7 @@ class _HashGridFunction(torch.autograd.Function):
         backward_levels(xn, tn, gn, ctx.res, ctx.dense, need_table, need_x, gt, part)
         if need_x:
             reduce_x(xn, part, grad_x.numpy())
-        return grad_x, grad_table, None, None
+        return grad_x, grad_table, None, None, None
 
 
 def level_arrays(resolutions, dense):
@@ -346,5 +432,9 @@ def level_arrays(resolutions, dense):
 
 def hashgrid_numba(x: torch.Tensor, table: torch.Tensor, res: np.ndarray, dense: np.ndarray) -> torch.Tensor:
     """Encode ``x`` (N, 3) float32 CPU with ``table`` (L, T, F) float32 CPU; differentiable w.r.t.
-    both (first order).  ``res, dense`` come from :func:`level_arrays`."""
-    return _HashGridFunction.apply(x, table, res, dense)
+    both (first order).  ``res, dense`` come from :func:`level_arrays`.  When only ``x`` needs a
+    gradient (tracking) and ``X_GRAD_PARALLEL`` is ``"jacobian"``, the forward also stores the
+    Jacobian so that the backward is a contraction."""
+    with_jac = (X_GRAD_PARALLEL == "jacobian" and torch.is_grad_enabled() and x.requires_grad
+                and not table.requires_grad)
+    return _HashGridFunction.apply(x, table, res, dense, with_jac)
