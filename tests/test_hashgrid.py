@@ -304,3 +304,15 @@ def test_tracking_backward_is_a_contraction_of_the_forward_jacobian(monkeypatch)
     xr = x.clone().requires_grad_()
     g.forward_torch(xr).backward(go)
     assert xr.grad.abs().max() > 0 and rel_err(xo.grad, xr.grad) < 1e-5
+
+
+def test_numba_threading_layer_is_workqueue_unless_the_user_chose(monkeypatch):
+    from dynslam_cli.utils import threads
+
+    monkeypatch.delenv("NUMBA_THREADING_LAYER", raising=False)
+    monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
+    assert threads.configure_numba_layer() == "workqueue"
+    assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"
+    monkeypatch.setenv("NUMBA_THREADING_LAYER", "omp")
+    assert threads.configure_numba_layer() == "omp"
+    assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"  # not overwritten

@@ -93,6 +93,7 @@ def versions() -> dict:
         import numba
 
         out["numba"] = numba.__version__
+        out["numba_threading_layer"] = numba.config.THREADING_LAYER
     except Exception:
         pass
     return out

@@ -1,0 +1,28 @@
+"""Numba's thread pool: which threading layer the parallel kernels use.
+
+Numba picks OpenMP by default where it can.  OpenMP worker threads spin-wait between parallel
+regions, and dynslam launches thousands of short regions (a hash-grid pass per iteration) between
+torch operations: when another process keeps a core busy (a second benchmark, a browser, CI's
+neighbour), the spinning workers and the main thread fight over the remaining core.  Measured on
+the 2-core dev machine with one core busy elsewhere, one tracking step took 10x as long with the
+OpenMP layer as with numba's own ``workqueue`` layer (benchmarks/bench_hashgrid.py --layers).  So
+dynslam selects ``workqueue`` unless the user chose a layer with ``NUMBA_THREADING_LAYER``.
+"""
+
+from __future__ import annotations
+
+import os
+
+DEFAULT_LAYER = "workqueue"
+
+
+def configure_numba_layer() -> str:
+    """Select the threading layer before numba launches its first parallel region; returns the
+    configured layer name (the user's ``NUMBA_THREADING_LAYER`` when set)."""
+    import numba
+
+    user = os.environ.get("NUMBA_THREADING_LAYER")
+    if user:
+        return user
+    numba.config.THREADING_LAYER = DEFAULT_LAYER
+    return DEFAULT_LAYER
