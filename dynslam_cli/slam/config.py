@@ -51,3 +51,6 @@ class MappingConfig:
                                 "summed over them (Co-SLAM pose_accum_step); the map steps every iteration.")
     optimize_current: bool = opt(True, "Also refine the current frame's pose in bundle adjustment (Co-SLAM optim_cur).")
     fix_first_pose: bool = opt(True, "Keep the first keyframe's pose fixed in bundle adjustment.")
+    final_iters: int = opt(0, "Bundle adjustment iterations over all keyframes (and the last frame) after the last "
+                           "frame, before the trajectory is written (SLAM.finish); 0 = none (Co-SLAM).  200 gained "
+                           "0.12-0.20 cm ATE on Bonn crowd frames 0-39 at seeds 0-2 (1000: 0.13 cm worse).")

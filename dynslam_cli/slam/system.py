@@ -465,6 +465,17 @@ class SLAM:
                 self.poses[cur.idx] = orthonormalize(new[-1])
         return last
 
+    def finish(self) -> Optional[MapResult]:
+        """After the last frame: mapping.final_iters more bundle adjustment iterations over all
+        keyframes and the last tracked frame (the periodic BA's code path); None when off."""
+        iters = int(self.cfg.mapping.final_iters)
+        cur = self._cur
+        if iters <= 0 or cur is None or cur.idx != self.n_frames - 1 or cur.idx == 0 or not self.keyframes:
+            return None
+        t0 = time.perf_counter()
+        loss = self._optimize(cur, iters, self.cfg.mapping.n_rays, first=False)
+        return MapResult(False, True, iters, float(loss), (time.perf_counter() - t0) * 1000)
+
     def process(self, frame, mask=None, instance_ids=None) -> FrameResult:
         t0 = time.perf_counter()
         tr = self.track(frame, mask)
