@@ -181,6 +181,22 @@ def test_stationary_instances_know_what_stayed_put():
     assert stationary_instances(now, ids, np.eye(4), intr, gone).tolist() == [False, False]
 
 
+def test_stationary_labels_only_with_centre_feature_or_when_asked():
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    depth = np.full((48, 64), 1.5, np.float32)
+    ids = np.ones((48, 64), np.int32)
+    kfs = [SimpleNamespace(frame_id=i, pose_c2w=np.eye(4), depth_raw_small=subsample_depth(depth)) for i in (2, 4)]
+
+    def loop(centre, anyway):
+        return SimpleNamespace(still_frames=10, still_without_centre=anyway,
+                               mm=SimpleNamespace(m=SimpleNamespace(centre_feature=centre, depth_threshold=0.3)),
+                               slam=SimpleNamespace(n_frames=6, keyframes=kfs, intr=intr))
+
+    assert DynamicLoop.stationary(loop(False, False), depth, ids, np.eye(4)) is None
+    assert DynamicLoop.stationary(loop(True, False), depth, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(False, True), depth, ids, np.eye(4)).tolist() == [True]
+
+
 def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():
     from dynslam_cli.slam.keyframes import forget_near
 

@@ -34,6 +34,10 @@ class RunConfig:
     still_frames: int = opt(10, "Dynamic mode with motion.centre_feature: an instance whose 3-D points every keyframe of "
                             "the last this-many frames (two or more) saw at the same depth has stayed put and is "
                             "labelled static at its place, whatever the map says; 0 = off.")
+    still_without_centre: bool = opt(False, "Dynamic mode: apply run.still_frames without motion.centre_feature too (an "
+                                     "instance that stayed put is labelled static, which the classifier then learns "
+                                     "for its appearance everywhere): breaks the loop where a surface once labelled "
+                                     "dynamic is never mapped, so always looks 'in front of the map'.")
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
                                "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "

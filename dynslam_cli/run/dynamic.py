@@ -38,6 +38,7 @@ class DynamicLoop:
         self.retrack_fraction = float(cfg.run.retrack_fraction)
         self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.still_frames = int(cfg.run.still_frames)
+        self.still_without_centre = bool(cfg.run.still_without_centre)
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
@@ -95,8 +96,9 @@ class DynamicLoop:
     def stationary(self, depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray) -> Optional[np.ndarray]:
         """Instances that stayed put over the last ``run.still_frames`` frames (see
         :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None unless the centre feature is
-        on (without it, 'static' would be learnt for the object everywhere, not at its place)."""
-        if self.still_frames <= 0 or not self.mm.m.centre_feature:
+        on (without it, 'static' would be learnt for the object everywhere, not at its place) or
+        ``run.still_without_centre`` asks for it anyway."""
+        if self.still_frames <= 0 or not (self.mm.m.centre_feature or self.still_without_centre):
             return None
         from dynslam_cli.slam.keyframes import stationary_instances
 
