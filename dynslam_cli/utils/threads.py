@@ -7,6 +7,9 @@ neighbour), the spinning workers and the main thread fight over the remaining co
 the 2-core dev machine with one core busy elsewhere and one thread, a tracking step took 359 ms
 with the OpenMP layer and 35 ms with numba's own ``workqueue`` layer (benchmarks/bench_threading.py).
 So dynslam selects ``workqueue`` unless the user chose a layer with ``NUMBA_THREADING_LAYER``.
+``workqueue`` must not launch parallel kernels from several Python threads at once (numba aborts
+then): a library user who runs dynslam in concurrent threads sets ``NUMBA_THREADING_LAYER=omp``
+(dynslam's own parallelism uses processes).
 """
 
 from __future__ import annotations
