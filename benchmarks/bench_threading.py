@@ -32,7 +32,7 @@ def worker(threads: int, reps: int) -> dict:
     from dynslam_cli.map.config import MapConfig
     from dynslam_cli.map.losses import ray_losses
     from dynslam_cli.map.model import NeuralMap
-    from dynslam_cli.map.render import sample_depths
+    from dynslam_cli.map.render import render_rays, sample_depths
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
@@ -47,8 +47,6 @@ def worker(threads: int, reps: int) -> dict:
         d = torch.nn.functional.normalize(torch.rand(n_rays, 3, generator=gen) - 0.5, dim=1)
         depth = 1 + 2 * torch.rand(n_rays, generator=gen)
         z = sample_depths(depth, cfg, gen)
-        from dynslam_cli.map.render import render_rays
-
         t0 = time.perf_counter()
         out = render_rays(model, o, d, z)
         loss = ray_losses(out, z, torch.rand(n_rays, 3, generator=gen), depth, cfg).total
