@@ -84,7 +84,6 @@ def _bare_loop(keyframes, intr):
     loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr)
     loop.mm = SimpleNamespace(m=SimpleNamespace(depth_threshold=0.3))
     loop.occlusion_aware = True
-    loop.free_space_window = 0
     return loop
 
 
@@ -117,22 +116,6 @@ def test_checkable_depth_knows_what_keyframes_saw_behind_occluders():
     loop = _bare_loop([kf], intr)
     loop.occlusion_aware = False
     assert loop.checkable_depth(now, np.eye(4), step=1)[1].all()
-
-
-def test_free_space_window_needs_every_neighbouring_ray_to_pass_the_point():
-    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
-    seen = np.full((48, 64), 3.0, np.float32)
-    seen[:, 32:] = 1.0  # the keyframe saw a wall at 3 m on the left, a near surface on the right
-    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=subsample_depth(seen))
-    now = np.full((48, 64), 2.0, np.float32)  # a point 2 m out: free space on the left only
-    loop = _bare_loop([kf], intr)
-    fwd0 = loop.checkable_depth(now, np.eye(4), step=1)[1]
-    loop.free_space_window = 1
-    fwd1 = loop.checkable_depth(now, np.eye(4), step=1)[1]
-    assert fwd0[24, 5] and fwd1[24, 5]  # deep inside the free space: both agree
-    assert not fwd0[24, 40] and not fwd1[24, 40]  # behind the near surface: neither
-    assert fwd0[24, 28] and not fwd1[24, 28]  # one stored ray from the silhouette: only the nearest ray passes
-    assert fwd1.sum() < fwd0.sum()
 
 
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():

@@ -28,9 +28,6 @@ class RunConfig:
     check_occlusion: bool = opt(True, "Dynamic mode: 'observed in front of the map' counts only where some recent "
                                 "keyframe saw the point or the free space at it, not an occluder in front of it "
                                 "(newly revealed space is unknown to the map).")
-    free_space_window: int = opt(0, "Dynamic mode with run.check_occlusion: a keyframe counts as having seen the free "
-                                 "space at a point only if all its stored rays within this many (1/4-resolution) "
-                                 "pixels passed beyond it; 0 = the nearest ray alone.")
     retrack_fraction: float = opt(0.02, "Dynamic mode: when a classifier update newly marks more than this fraction of "
                                   "the frame's valid pixels dynamic, the frame is tracked again without them "
                                   "(the paper tracks once); 0 = never.")

@@ -39,7 +39,6 @@ class DynamicLoop:
         self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.still_frames = int(cfg.run.still_frames)
         self.still_without_centre = bool(cfg.run.still_without_centre)
-        self.free_space_window = int(cfg.run.free_space_window)
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
@@ -90,7 +89,7 @@ class DynamicLoop:
         if not kfs:
             return out, out > 0
         frustum, observed = keyframe_visibility(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step,
-                                                self.mm.m.depth_threshold, self.free_space_window)
+                                                self.mm.m.depth_threshold)
         out[~frustum] = 0.0
         return out, observed if self.occlusion_aware else np.ones_like(observed)
 

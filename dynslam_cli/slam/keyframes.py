@@ -117,7 +117,7 @@ def _project(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int):
 
 
 def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
-                        occlusion_margin: float = 0.3, window: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                        occlusion_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
     """What the keyframes saw of the current frame's back-projected points (at ``pose_c2w``).
 
     Returns two (H, W) bool masks, evaluated every ``step``-th pixel and upsampled (nearest):
@@ -126,11 +126,7 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     - ``observed``: for at least one keyframe the point is inside its frustum and the keyframe's
       measured depth there (``depth_small``) does not stop more than ``occlusion_margin`` in front
       of it: that keyframe saw the point, or the free space where it now is, not an occluder.
-      Keyframes without ``depth_small`` count their whole frustum as observed.  With ``window``
-      > 0 the keyframe's depth is min-filtered over (2 window + 1)^2 of its stored pixels first
-      (a hole counts as 0): the point must lie in free space for all the neighbouring keyframe
-      rays too, so a point on a silhouette or a grazing surface is not "seen through" by the
-      ray beside it (the stored depth is at 1/4 resolution).
+      Keyframes without ``depth_small`` count their whole frustum as observed.
 
     Both are all False when there are no keyframes.
     """
@@ -150,9 +146,6 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
         pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
         frustum |= inside
         small = kf.depth_small
-        if small is not None and window > 0:
-            k = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
-            small = cv2.erode(small.astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
         if small is not None and inside.any():
             hs, ws = small.shape
             idx = np.flatnonzero(inside)
