@@ -1,12 +1,14 @@
 """Numba threading layers under load: one tracking step (render 1024 rays x 16 samples through the
 neural map, loss, backward to the ray points with the table frozen) and one mapping step (2048
-rays, table and decoders trainable), timed in a fresh process per threading layer, on an idle
-machine and with a busy-loop process keeping one core occupied (as a second benchmark or any
-other job would).  Prints median / min ms per step.
+rays, table and decoders trainable), timed in a fresh process per threading layer: on an idle
+machine, beside a plain busy-loop process, and beside a second dynslam-like process (the same
+steps in a loop, 1 thread, same layer), as when two benchmarks run side by side.  Prints median /
+min ms per step.
 
     .venv/bin/python benchmarks/bench_threading.py [--layers workqueue,omp] [--threads 1,2] [--reps 20]
 
-dynslam uses ``workqueue`` unless NUMBA_THREADING_LAYER says otherwise (dynslam_cli/utils/threads.py).
+dynslam leaves the layer to numba (OpenMP where available) unless NUMBA_THREADING_LAYER is set;
+see README "Benchmarks" for the measured advice.
 """
 
 from __future__ import annotations
@@ -63,8 +65,14 @@ def worker(threads: int, reps: int) -> dict:
     return res
 
 
-def busy_loop() -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+def other_load(kind: str, env: dict) -> subprocess.Popen | None:
+    """None, a busy Python loop, or a second process running the same steps endlessly."""
+    if kind == "none":
+        return None
+    if kind == "busy loop":
+        return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    return subprocess.Popen([sys.executable, __file__, "--worker", "1", "100000"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def main() -> None:
@@ -78,11 +86,13 @@ def main() -> None:
         print(json.dumps(worker(*a.worker)))
         return
     print(f"{'layer':<10} {'threads':>7} {'other load':<10} {'track ms':>9} {'(min)':>7} {'map ms':>8} {'(min)':>7}")
-    for busy in (False, True):
+    for load in ("none", "busy loop", "2nd run"):
         for threads in (int(t) for t in a.threads.split(",")):
             for layer in a.layers.split(","):
                 env = dict(os.environ, NUMBA_THREADING_LAYER=layer)
-                hog = busy_loop() if busy else None
+                hog = other_load(load, env)
+                if hog is not None:
+                    time.sleep(3)  # let the other load start
                 try:
                     out = subprocess.run([sys.executable, __file__, "--worker", str(threads), str(a.reps)], env=env,
                                          capture_output=True, text=True, check=False)
@@ -92,10 +102,10 @@ def main() -> None:
                         hog.wait()
                 if out.returncode != 0:
                     msg = out.stderr.strip().splitlines()[-1] if out.stderr.strip() else f"exit {out.returncode}"
-                    print(f"{layer:<10} {threads:>7} {'1 core' if busy else 'none':<10} unavailable: {msg}")
+                    print(f"{layer:<10} {threads:>7} {load:<10} unavailable: {msg}")
                     continue
                 r = json.loads(out.stdout.strip().splitlines()[-1])
-                print(f"{r['layer']:<10} {threads:>7} {'1 core' if busy else 'none':<10} {r['track'][0]:>9.1f} "
+                print(f"{r['layer']:<10} {threads:>7} {load:<10} {r['track'][0]:>9.1f} "
                       f"{r['track'][1]:>7.1f} {r['map'][0]:>8.1f} {r['map'][1]:>7.1f}", flush=True)
     print(f"load average at end: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores (the idle rows assume "
           f"nothing else runs)")

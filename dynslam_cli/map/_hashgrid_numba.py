@@ -29,10 +29,6 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from dynslam_cli.utils.threads import configure_numba_layer
-
-configure_numba_layer()
-
 P1 = np.int64(2654435761)
 P2 = np.int64(805459861)
 

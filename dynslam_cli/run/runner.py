@@ -68,7 +68,10 @@ def seed_everything(seed: int) -> None:
 def set_threads(n: int) -> int:
     import torch
 
+    from dynslam_cli.utils.threads import choose_numba_layer
+
     n = int(n) if n and n > 0 else (os.cpu_count() or 1)
+    choose_numba_layer(n)  # workqueue for one-thread runs (see utils/threads.py)
     torch.set_num_threads(n)
     try:
         import numba
@@ -93,7 +96,10 @@ def versions() -> dict:
         import numba
 
         out["numba"] = numba.__version__
-        out["numba_threading_layer"] = numba.config.THREADING_LAYER
+        try:
+            out["numba_threading_layer"] = numba.threading_layer()
+        except ValueError:  # no parallel kernel has run yet
+            out["numba_threading_layer"] = str(numba.config.THREADING_LAYER)
     except Exception:
         pass
     return out

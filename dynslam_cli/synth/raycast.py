@@ -13,10 +13,6 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from dynslam_cli.utils.threads import configure_numba_layer
-
-configure_numba_layer()
-
 TILE = 16  # pixels per side of the tiles whose viewing cones cull the object groups
 
 
