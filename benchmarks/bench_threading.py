@@ -7,7 +7,7 @@ min ms per step.
 
     .venv/bin/python benchmarks/bench_threading.py [--layers workqueue,omp] [--threads 1,2] [--reps 20]
 
-dynslam leaves the layer to numba (OpenMP where available) unless NUMBA_THREADING_LAYER is set;
+dynslam uses workqueue unless NUMBA_THREADING_LAYER is set (dynslam_cli/utils/threads.py);
 see README "Benchmarks" for the measured advice.
 """
 

@@ -306,13 +306,14 @@ def test_tracking_backward_is_a_contraction_of_the_forward_jacobian(monkeypatch)
     assert xr.grad.abs().max() > 0 and rel_err(xo.grad, xr.grad) < 1e-5
 
 
-def test_one_thread_runs_choose_workqueue_unless_the_user_chose(monkeypatch):
+def test_runs_choose_workqueue_unless_the_user_chose(monkeypatch):
     from dynslam_cli.utils import threads
 
     monkeypatch.delenv("NUMBA_THREADING_LAYER", raising=False)
     monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
-    assert threads.choose_numba_layer(2) is None
-    assert numba_kernels.numba.config.THREADING_LAYER == "default"  # several threads: numba's choice
+    assert threads.choose_numba_layer(2) == "workqueue"
+    assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"
+    monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
     assert threads.choose_numba_layer(1) == "workqueue"
     assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"
     monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")

@@ -71,7 +71,7 @@ def set_threads(n: int) -> int:
     from dynslam_cli.utils.threads import choose_numba_layer
 
     n = int(n) if n and n > 0 else (os.cpu_count() or 1)
-    choose_numba_layer(n)  # workqueue for one-thread runs (see utils/threads.py)
+    choose_numba_layer(n)  # numba's workqueue layer (see utils/threads.py)
     torch.set_num_threads(n)
     try:
         import numba

@@ -7,11 +7,12 @@ dearly.  Measured with benchmarks/bench_threading.py on the 2-core dev machine, 
 tracking step (OpenMP / numba's own ``workqueue`` layer): idle 21 / 32, beside a busy loop 58 / 28,
 beside a second dynslam run 359 / 29.
 
-So a run with one thread (``run.threads=1``, what the README advises on a shared machine and what
-the benchmarks and ablation workers use side by side) selects ``workqueue``; runs with more threads
-keep numba's choice.  ``NUMBA_THREADING_LAYER`` set by the user always wins.  ``workqueue`` must not
-launch kernels from several Python threads at once (numba aborts then); dynslam's own parallelism
-uses processes.
+In the whole pipeline OpenMP lost even on the idle machine with 2 threads (torch's own OpenMP
+pool and numba's spin against each other): synth/static, 150 frames at 640x480, 1.15 fps with
+``workqueue`` against 0.89 with OpenMP (first frame 48.6 s / 63.9 s); the Bonn clip in dynamic
+mode 0.88 against about 0.6 fps.  So every run selects ``workqueue``; ``NUMBA_THREADING_LAYER``
+set by the user wins.  ``workqueue`` must not launch kernels from several Python threads at once
+(numba aborts then); dynslam's own parallelism uses processes.
 """
 
 from __future__ import annotations
@@ -22,15 +23,14 @@ from typing import Optional
 SHARED_LAYER = "workqueue"
 
 
-def choose_numba_layer(threads: int) -> Optional[str]:
-    """Call before numba's first parallel launch in the process: ``workqueue`` for a one-thread run
-    unless ``NUMBA_THREADING_LAYER`` is set.  Returns the layer asked for (None = numba's choice).
-    After the first launch numba keeps the layer it started with, whatever is asked."""
+def choose_numba_layer(threads: int = 0) -> Optional[str]:
+    """Call before numba's first parallel launch in the process: ``workqueue`` unless
+    ``NUMBA_THREADING_LAYER`` is set (``threads`` is kept for callers; every count gets the same
+    layer).  Returns the layer asked for (None = numba missing).  After the first launch numba
+    keeps the layer it started with, whatever is asked."""
     user = os.environ.get("NUMBA_THREADING_LAYER")
     if user:
         return user
-    if int(threads) != 1:
-        return None
     try:
         import numba
     except ImportError:
