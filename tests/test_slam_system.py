@@ -199,3 +199,29 @@ def test_retrack_replaces_the_last_pose_and_keeps_the_bookkeeping(fitted):
     assert slam._undo[0] is prev and not res.diverged
     assert np.linalg.norm(res.pose_c2w[:3, 3] - true[:3, 3]) < 0.5 * np.linalg.norm(true[:3, 3])
     slam.map(f1)  # map() still accepts the retracked frame (it raises otherwise)
+
+
+def test_final_bundle_adjustment_refines_keyframes_but_not_the_first(fitted):
+    # mapping.final_iters: SLAM.finish() runs bundle adjustment after the last frame
+    _, state = fitted
+
+    def load(**over):
+        s = SLAM(tiny_config(**{"tracking.icp_init": False, "mapping.every": 100, "mapping.keyframe_every": 1,
+                                **over}), INTR, torch.device("cpu"))
+        s.load_state_dict(state)
+        return s
+
+    poses = trajectory(3, step=0.01)
+    off, on = load(), load(**{"mapping.final_iters": 10})
+    for s in (off, on):
+        for i in (1, 2):
+            s.process(F(i, poses[i], INTR))
+    assert off.finish() is None
+    before = on.trajectory()
+    assert np.allclose(before, off.trajectory())
+    res = on.finish()
+    assert res is not None and res.ba and res.iters == 10 and np.isfinite(res.loss)
+    after = on.trajectory()
+    assert np.allclose(after[0], before[0])  # the first keyframe stays fixed
+    assert not np.allclose(after[1], before[1])
+    assert np.allclose(on.keyframes[1].pose_c2w, after[1])
