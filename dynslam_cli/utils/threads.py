@@ -7,10 +7,9 @@ dearly.  Measured with benchmarks/bench_threading.py on the 2-core dev machine, 
 tracking step (OpenMP / numba's own ``workqueue`` layer): idle 21 / 32, beside a busy loop 58 / 28,
 beside a second dynslam run 359 / 29.
 
-In the whole pipeline OpenMP lost even on the idle machine with 2 threads (torch's own OpenMP
-pool and numba's spin against each other): synth/static, 150 frames at 640x480, 1.15 fps with
-``workqueue`` against 0.89 with OpenMP (first frame 48.6 s / 63.9 s); the Bonn clip in dynamic
-mode 0.88 against about 0.6 fps.  So every run selects ``workqueue``; ``NUMBA_THREADING_LAYER``
+With 2 threads on the idle (but noisy) machine the whole pipeline showed no consistent winner:
+synth/static 150 frames at 640x480 ran at 0.89 fps with OpenMP against 1.15 with ``workqueue``,
+the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66.  So every run selects ``workqueue``; ``NUMBA_THREADING_LAYER``
 set by the user wins.  ``workqueue`` must not launch kernels from several Python threads at once
 (numba aborts then); dynslam's own parallelism uses processes.
 """
