@@ -1,6 +1,6 @@
 """Numba's thread pool: which threading layer the parallel kernels use.
 
-Numba picks OpenMP where it can, and on an idle machine that is the fastest layer.  OpenMP worker
+Numba picks OpenMP where it can; at one thread on an idle machine it is the faster layer.  OpenMP worker
 threads spin-wait between parallel regions, though, and dynslam launches thousands of short regions
 (a hash-grid pass per iteration) between torch operations: beside other work the spinning costs
 dearly.  Measured with benchmarks/bench_threading.py on the 2-core dev machine, one thread, ms per
@@ -9,8 +9,8 @@ beside a second dynslam run 359 / 29.
 
 With 2 threads on the idle (but noisy) machine the whole pipeline showed no consistent winner:
 synth/static 150 frames at 640x480 ran at 0.89 fps with OpenMP against 1.15 with ``workqueue``,
-the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66.  So every run selects ``workqueue``; ``NUMBA_THREADING_LAYER``
-set by the user wins.  ``workqueue`` must not launch kernels from several Python threads at once
+the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66.  So every run
+selects ``workqueue`` for its behaviour under load; ``NUMBA_THREADING_LAYER`` set by the user wins.  ``workqueue`` must not launch kernels from several Python threads at once
 (numba aborts then); dynslam's own parallelism uses processes.
 """
 
