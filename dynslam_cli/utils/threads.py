@@ -10,8 +10,9 @@ beside a second dynslam run 359 / 29.
 With 2 threads on the idle (but noisy) machine the whole pipeline showed no consistent winner:
 synth/static 150 frames at 640x480 ran at 0.89 fps with OpenMP against 1.15 with ``workqueue``,
 the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66.  So every run
-selects ``workqueue`` for its behaviour under load; ``NUMBA_THREADING_LAYER`` set by the user wins.  ``workqueue`` must not launch kernels from several Python threads at once
-(numba aborts then); dynslam's own parallelism uses processes.
+selects ``workqueue`` for its behaviour under load; ``NUMBA_THREADING_LAYER`` set by the user wins.
+``workqueue`` must not launch kernels from several Python threads at once (numba aborts then);
+dynslam's own parallelism uses processes.
 """
 
 from __future__ import annotations
