@@ -29,6 +29,10 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from dynslam_cli.utils.threads import choose_numba_layer
+
+choose_numba_layer()  # before any kernel here launches
+
 P1 = np.int64(2654435761)
 P2 = np.int64(805459861)
 
@@ -72,6 +76,15 @@ def _corner_indices(c0, c1, c2, dense, stride, mask):
     d1 = d0 + P2
     return ((a0 ^ b0 ^ d0) & mask, (a1 ^ b0 ^ d0) & mask, (a0 ^ b1 ^ d0) & mask, (a1 ^ b1 ^ d0) & mask,
             (a0 ^ b0 ^ d1) & mask, (a1 ^ b0 ^ d1) & mask, (a0 ^ b1 ^ d1) & mask, (a1 ^ b1 ^ d1) & mask)
+
+
+@njit(inline="always")
+def _point_corners(x, n, rf, r, dn, mask):
+    """Corner indices and fractions of point ``x[n]`` (clamped) at one level: ``(ids, f0, f1, f2)``."""
+    c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
+    c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
+    c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
+    return _corner_indices(c0, c1, c2, dn, r + 1, mask), f0, f1, f2
 
 
 @njit(inline="always")
@@ -124,10 +137,7 @@ def forward_levels(x, table, res, dense, out):
         rf = np.float32(r)
         dn = dense[lv] != 0
         for n in range(n_pts):
-            c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
-            c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
-            c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
-            ids = _corner_indices(c0, c1, c2, dn, r + 1, mask)
+            ids, f0, f1, f2 = _point_corners(x, n, rf, r, dn, mask)
             ws = _corner_weights(f0, f1, f2)
             for f in range(nf):
                 acc = np.float32(0.0)
@@ -151,10 +161,7 @@ def forward_levels_jac(x, table, res, dense, out, jac):
         rf = np.float32(r)
         dn = dense[lv] != 0
         for n in range(n_pts):
-            c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
-            c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
-            c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
-            ids = _corner_indices(c0, c1, c2, dn, r + 1, mask)
+            ids, f0, f1, f2 = _point_corners(x, n, rf, r, dn, mask)
             ws = _corner_weights(f0, f1, f2)
             e0 = one - f0
             e1 = one - f1
@@ -234,10 +241,7 @@ def backward_levels(x, table, grad_out, res, dense, do_table, do_x, grad_table, 
         rf = np.float32(r)
         dn = dense[lv] != 0
         for n in range(n_pts):
-            c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
-            c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
-            c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
-            ids = _corner_indices(c0, c1, c2, dn, r + 1, mask)
+            ids, f0, f1, f2 = _point_corners(x, n, rf, r, dn, mask)
             if do_table:
                 ws = _corner_weights(f0, f1, f2)
                 for f in range(nf):
