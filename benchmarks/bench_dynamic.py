@@ -73,9 +73,6 @@ def main() -> None:
     ap.add_argument("--out", default=str(REPO / "results" / "bench" / "dynamic"))
     ap.add_argument("--fresh", action="store_true")
     a = ap.parse_args()
-    from dynslam_cli.utils.threads import choose_numba_layer
-
-    choose_numba_layer(a.threads)  # before synthetic rendering launches numba's first kernel
     w, h = (int(v) for v in a.size.lower().split("x"))
     base = [f"data.root={a.data_root}", f"run.threads={a.threads}"] + a.set
     cases = []

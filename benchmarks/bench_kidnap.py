@@ -195,9 +195,6 @@ def main() -> None:
     ap.add_argument("--out", default=str(REPO / "results" / "bench" / "kidnap"))
     ap.add_argument("--fresh", action="store_true", help="redo the runs even when complete")
     a = ap.parse_args()
-    from dynslam_cli.utils.threads import choose_numba_layer
-
-    choose_numba_layer(a.threads)  # before synthetic rendering launches numba's first kernel
     t_start = time.perf_counter()
     w, h = (int(v) for v in a.size.lower().split("x"))
     variants = [v for v in a.variants.split(",") if v]

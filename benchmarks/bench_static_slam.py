@@ -69,9 +69,6 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=0, help="override the frame count of every case")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
-    from dynslam_cli.utils.threads import choose_numba_layer
-
-    choose_numba_layer(a.threads)  # before synthetic rendering launches numba's first kernel
     cases = {
         "synth": ("synth/static", "synth", 150, ["synth.width=640", "synth.height=480", "synth.frames=150"]),
         "bonn": (str(BONN), "bonn", 40, []),

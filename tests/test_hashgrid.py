@@ -311,12 +311,12 @@ def test_runs_choose_workqueue_unless_the_user_chose(monkeypatch):
 
     monkeypatch.delenv("NUMBA_THREADING_LAYER", raising=False)
     monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
-    assert threads.choose_numba_layer(2) == "workqueue"
+    assert threads.choose_numba_layer() == "workqueue"
     assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"
     monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
-    assert threads.choose_numba_layer(1) == "workqueue"
+    assert threads.choose_numba_layer() == "workqueue"
     assert numba_kernels.numba.config.THREADING_LAYER == "workqueue"
     monkeypatch.setattr(numba_kernels.numba.config, "THREADING_LAYER", "default")
     monkeypatch.setenv("NUMBA_THREADING_LAYER", "omp")
-    assert threads.choose_numba_layer(1) == "omp"
+    assert threads.choose_numba_layer() == "omp"
     assert numba_kernels.numba.config.THREADING_LAYER == "default"  # the user's setting is numba's to read

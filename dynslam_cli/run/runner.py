@@ -68,10 +68,7 @@ def seed_everything(seed: int) -> None:
 def set_threads(n: int) -> int:
     import torch
 
-    from dynslam_cli.utils.threads import choose_numba_layer
-
     n = int(n) if n and n > 0 else (os.cpu_count() or 1)
-    choose_numba_layer(n)  # numba's workqueue layer (see utils/threads.py)
     torch.set_num_threads(n)
     try:
         import numba

@@ -13,6 +13,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from dynslam_cli.utils.threads import choose_numba_layer
+
+choose_numba_layer()  # before any kernel here launches
+
 TILE = 16  # pixels per side of the tiles whose viewing cones cull the object groups
 
 

@@ -23,11 +23,10 @@ from typing import Optional
 SHARED_LAYER = "workqueue"
 
 
-def choose_numba_layer(threads: int = 0) -> Optional[str]:
-    """Call before numba's first parallel launch in the process: ``workqueue`` unless
-    ``NUMBA_THREADING_LAYER`` is set (``threads`` is kept for callers; every count gets the same
-    layer).  Returns the layer asked for (None = numba missing).  After the first launch numba
-    keeps the layer it started with, whatever is asked."""
+def choose_numba_layer() -> Optional[str]:
+    """``workqueue`` unless ``NUMBA_THREADING_LAYER`` is set; the modules holding dynslam's parallel
+    kernels call it on import, before numba's first parallel launch (after it, numba keeps the
+    layer it started with).  Returns the layer asked for (None = numba missing)."""
     user = os.environ.get("NUMBA_THREADING_LAYER")
     if user:
         return user
