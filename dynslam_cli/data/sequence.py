@@ -115,7 +115,9 @@ class Sequence:
             img = self._undistorter.rgb(img)
         return np.ascontiguousarray(img)
 
-    def load_depth(self, j: int) -> np.ndarray:
+    def load_depth(self, j: int, cut: bool = True) -> np.ndarray:
+        """Depth of frame ``j`` in metres (0 = invalid), undistorted; without ``cut`` also
+        beyond ``max_depth``."""
         import cv2
 
         rec = self.records[j]
@@ -128,7 +130,7 @@ class Sequence:
         depth = raw.astype(np.float32) / np.float32(self.depth_scale)
         if self._undistorter is not None:
             depth = self._undistorter.depth(depth)
-        if self.max_depth > 0:
+        if cut and self.max_depth > 0:
             depth[depth > self.max_depth] = 0.0
         return depth
 
@@ -152,7 +154,10 @@ class Sequence:
     def _load(self, j: int) -> Frame:
         rec = self.records[j]
         rgb = self.load_rgb(j)
-        depth = self.load_depth(j)
+        full = self.load_depth(j, cut=False)
+        depth = full
+        if self.max_depth > 0:
+            depth = np.where(full > self.max_depth, 0, full).astype(np.float32)
         inst = dyn = None
         if rec.instances is not None:
             inst = self._load_labels(rec.instances, j, "instance").astype(np.int32)
@@ -160,7 +165,7 @@ class Sequence:
             dyn = self._load_labels(rec.dynamic, j, "dynamic-mask") > 0
         pose = None if rec.pose_c2w is None else rec.pose_c2w.copy()
         return Frame(index=j, timestamp=rec.timestamp, rgb=rgb, depth=depth, pose_c2w=pose,
-                     instance_ids=inst, dynamic_mask=dyn)
+                     instance_ids=inst, dynamic_mask=dyn, depth_full=full if self.max_depth > 0 else None)
 
 
 def _imread(path: Path, flags: int, where: str) -> np.ndarray:

@@ -54,6 +54,7 @@ class Frame:
     pose_c2w: np.ndarray | None = None  # 4×4 float64 ground truth (evaluation only) or None
     instance_ids: np.ndarray | None = None  # H×W int32, 0 = background (synthetic scenes)
     dynamic_mask: np.ndarray | None = None  # H×W bool, True = moving (synthetic scenes)
+    depth_full: np.ndarray | None = None  # H×W float32 metres before data.max_depth; None = same as depth
 
     @property
     def height(self) -> int:
