@@ -225,3 +225,40 @@ def test_final_bundle_adjustment_refines_keyframes_but_not_the_first(fitted):
     assert np.allclose(after[0], before[0])  # the first keyframe stays fixed
     assert not np.allclose(after[1], before[1])
     assert np.allclose(on.keyframes[1].pose_c2w, after[1])
+
+
+@pytest.mark.parametrize("feature_init", [True, False])
+def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_init):
+    from test_geometry_features import F as FOCAL
+    from test_geometry_features import H as HT
+    from test_geometry_features import W as WT
+    from test_geometry_features import _render, _texture
+
+    intr = TinyIntrinsics(WT, HT, f=FOCAL)
+    cfg = tiny_config(**{"tracking.iters": 0, "tracking.icp_init": False, "tracking.feature_init": feature_init,
+                         "tracking.feature_count": 1000, "mapping.first_iters": 2, "map.bounds": "null"})
+    tex = _texture()
+    poses = [np.eye(4), se3_exp_np([0.03, -0.01, 0.04, 0.01, -0.02, 0.0]),
+             se3_exp_np([0.05, -0.02, 0.07, 0.015, -0.03, 0.005])]
+
+    class TF:
+        def __init__(self, i):
+            self.index, self.timestamp, self.pose_c2w = i, float(i), poses[0] if i == 0 else None
+            self.rgb, self.depth = _render(poses[i], tex)
+
+    slam = SLAM(cfg, intr, torch.device("cpu"))
+    slam.process(TF(0))
+    r1 = slam.process(TF(1))
+    if not feature_init:  # constant velocity from one pose: the identity
+        assert slam.last_pnp is None and np.allclose(r1.pose_c2w, np.eye(4))
+        return
+    assert slam.last_pnp.ok and slam.last_pnp.inliers > 100
+    assert np.linalg.norm(r1.pose_c2w[:3, 3] - poses[1][:3, 3]) < 0.015
+    assert slam._feat_ref[0] == 0  # many inliers: frame 0 stays the reference
+    state = slam.state_dict()
+    r2 = slam.process(TF(2))
+    assert np.linalg.norm(r2.pose_c2w[:3, 3] - poses[2][:3, 3]) < 0.015
+    back = SLAM(cfg, intr, torch.device("cpu"))
+    back.load_state_dict(state)
+    assert back._feat_ref[0] == 0 and np.array_equal(back._feat_ref[1].des, state["feat_ref"]["des"])
+    assert np.allclose(back.process(TF(2)).pose_c2w, r2.pose_c2w)

@@ -17,6 +17,7 @@ import torch
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import backproject, pixel_dirs
+from dynslam_cli.geometry.features import FeatureOdometry, FeatureSet
 from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses, smoothness_loss
@@ -108,8 +109,11 @@ class SLAM:
         self._cur: Optional[_Current] = None
         self._kf_cache = None  # concatenated keyframe rays (torch) and owners
         self._prev_depth: Optional[np.ndarray] = None  # last tracked frame's (masked) depth, ICP reference
-        self._undo: Optional[tuple] = None  # (ICP reference before the last track(),) for retrack()
+        self._feat_ref: Optional[tuple[int, FeatureSet]] = None  # (frame id, keypoints): feature-init reference
+        self._odometry: Optional[FeatureOdometry] = None
+        self._undo: Optional[tuple] = None  # (ICP reference, feature reference) before the last track(), for retrack()
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
+        self.last_pnp = None  # PnPResult of the last tracked frame's feature init (diagnostics)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -161,6 +165,16 @@ class SLAM:
         if len(self.poses) >= 2 and tc.const_velocity:
             rel = inv_np(self.poses[-2]) @ p1
         self.last_icp = None
+        self.last_pnp = None
+        if tc.feature_init and cur is not None and self._feat_ref is not None and "features" in cur.extra:
+            ref_id, ref = self._feat_ref
+            res = self._feature_odometry().estimate(ref, cur.extra["features"])
+            self.last_pnp = res
+            if res.ok:
+                cand = inv_np(p1) @ self.poses[ref_id] @ res.T
+                if float(np.linalg.norm(cand[:3, 3] - rel[:3, 3])) <= tc.max_jump:
+                    rel = cand
+                    return orthonormalize(p1 @ rel)  # ICP only where the features fail
         if tc.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
                             init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
@@ -169,6 +183,37 @@ class SLAM:
             if res.ok and float(np.linalg.norm(res.T[:3, 3] - rel[:3, 3])) <= tc.max_jump:
                 rel = res.T
         return orthonormalize(p1 @ rel)
+
+    def _feature_odometry(self) -> FeatureOdometry:
+        if self._odometry is None:
+            tc = self.cfg.tracking
+            self._odometry = FeatureOdometry(self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy, self.W,
+                                             n_features=tc.feature_count, ratio=tc.feature_ratio,
+                                             ransac_px=tc.feature_ransac_px, min_inliers=tc.feature_min_inliers)
+        return self._odometry
+
+    def _detect_features(self, frame, cur: _Current) -> None:
+        """ORB keypoints of the current frame on its static pixels, with the depth before the
+        data layer's depth cut (``frame.depth_full``) where the frame has it."""
+        if not self.cfg.tracking.feature_init:
+            return
+        full = getattr(frame, "depth_full", None)
+        depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
+        cur.extra["features"] = self._feature_odometry().detect(cur.rgb_np, depth, cur.mask)
+
+    def _update_feature_ref(self, cur: _Current) -> None:
+        """The frame just tracked becomes the feature reference when there is none, when its
+        feature init failed, or when it shared too few inliers with the reference."""
+        fs = cur.extra.get("features")
+        if fs is None:
+            self._feat_ref = None
+            return
+        res = self.last_pnp
+        if self._feat_ref is not None and res is not None and res.ok:
+            n_ref = int((self._feat_ref[1].depth > 0).sum())
+            if res.inliers >= self.cfg.tracking.feature_keep_ref * n_ref:
+                return
+        self._feat_ref = (cur.idx, fs)
 
     def _edges(self, cur: _Current, margin: int) -> np.ndarray:
         """Depth-edge pixels of the current frame within ``margin`` px (cached per margin).
@@ -204,6 +249,7 @@ class SLAM:
         t0 = time.perf_counter()
         cur = self._prepare(frame, mask)
         self._cur = cur
+        self._detect_features(frame, cur)
         if self.n_frames == 0:
             gt = getattr(frame, "pose_c2w", None)
             pose = np.array(gt, np.float64) if gt is not None else np.eye(4)
@@ -280,13 +326,16 @@ class SLAM:
             raise DynslamError("SLAM.retrack() must follow track() of the same frame (not the first)")
         for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
             lst.pop()
-        self._prev_depth = self._undo[0]
+        self._prev_depth, self._feat_ref = self._undo
         return self.track(frame, mask)
 
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
-        self._undo = (self._prev_depth,)
+        self._undo = (self._prev_depth, self._feat_ref)
         self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
+        if cur.idx == 0:
+            self.last_pnp = None
+        self._update_feature_ref(cur)
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
         kf_id = (cur.idx // ke) * ke
@@ -309,6 +358,8 @@ class SLAM:
             cur.mask = np.asarray(mask, bool)
             if self.cfg.tracking.icp_init:  # the next frame's ICP aligns to the static pixels as now known
                 self._prev_depth = self._icp_depth(cur)
+            if self._feat_ref is not None and self._feat_ref[0] == cur.idx:  # so do the next frames' features
+                self._feat_ref = (cur.idx, self._feat_ref[1].masked(cur.mask))
         mc = self.cfg.mapping
         t0 = time.perf_counter()
         ba = False
@@ -574,6 +625,7 @@ class SLAM:
             "rng": self.rng.bit_generator.state,
             "tgen": self.tgen.get_state().cpu(),
             "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
+            "feat_ref": None if self._feat_ref is None else {"frame": self._feat_ref[0], **self._feat_ref[1].to_dict()},
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -594,3 +646,5 @@ class SLAM:
         self._kf_cache = None
         pd = d.get("prev_depth")
         self._prev_depth = None if pd is None else np.asarray(pd, np.float32)
+        fr = d.get("feat_ref")
+        self._feat_ref = None if fr is None else (int(fr["frame"]), FeatureSet.from_dict(fr))
