@@ -262,3 +262,13 @@ def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_ini
     back.load_state_dict(state)
     assert back._feat_ref[0] == 0 and np.array_equal(back._feat_ref[1].des, state["feat_ref"]["des"])
     assert np.allclose(back.process(TF(2)).pose_c2w, r2.pose_c2w)
+
+
+def test_iters_dynamic_replaces_the_tracking_iterations_in_dynamic_mode(fitted):
+    cfg, state = fitted
+    true = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])
+    for mode, it_dyn, want in [("static", 0, 10), ("dynamic", 0, 0), ("dynamic", 3, 3), ("dynamic", -1, 10)]:
+        c = tiny_config(**{"run.mode": mode, "tracking.iters_dynamic": it_dyn})
+        slam = _load(c, state)
+        assert slam.tracking_iters == want
+        assert slam.track(F(1, true, INTR)).iters == want

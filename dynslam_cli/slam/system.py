@@ -120,6 +120,14 @@ class SLAM:
     def n_frames(self) -> int:
         return len(self.poses)
 
+    @property
+    def tracking_iters(self) -> int:
+        """tracking.iters, or tracking.iters_dynamic in dynamic mode when that is set."""
+        tc = self.cfg.tracking
+        if getattr(self.cfg.run, "mode", "") == "dynamic" and tc.iters_dynamic >= 0:
+            return int(tc.iters_dynamic)
+        return int(tc.iters)
+
     def _t(self, a, dtype=torch.float32) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a), dtype=dtype).to(self.device)
 
@@ -258,23 +266,24 @@ class SLAM:
                 self._build_model(b)
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
+        iters = self.tracking_iters
         init = self._initial_guess(cur)
         tvalid = self._without_edges(cur, cur.valid, tc.edge_margin)
-        if len(tvalid) < tc.min_pixels or tc.iters <= 0:
-            reason = f"only {len(tvalid)} usable pixels" if tc.iters > 0 else ""
+        if len(tvalid) < tc.min_pixels or iters <= 0:
+            reason = f"only {len(tvalid)} usable pixels" if iters > 0 else ""
             if reason:
                 self._event(cur.idx, "skipped", reason)
             return self._finish_track(cur, init, float("nan"), 0, bool(reason), t0, reason)
         R, S = tc.n_rays, self.cfg.map.samples_free + self.cfg.map.samples_surface
         if tc.resample_rays:
-            idx = torch.from_numpy(self._sample(tvalid, tc.iters * R)).to(self.device)
+            idx = torch.from_numpy(self._sample(tvalid, iters * R)).to(self.device)
         else:
-            idx = torch.from_numpy(np.tile(self._sample(tvalid, R), tc.iters)).to(self.device)
-        dirs_c = self.dirs[idx].view(tc.iters, R, 3)
-        rgb_t = cur.rgb[idx].view(tc.iters, R, 3)
+            idx = torch.from_numpy(np.tile(self._sample(tvalid, R), iters)).to(self.device)
+        dirs_c = self.dirs[idx].view(iters, R, 3)
+        rgb_t = cur.rgb[idx].view(iters, R, 3)
         d_t = cur.depth[idx]
-        z_all = sample_depths(d_t, self.cfg.map, self.tgen).view(tc.iters, R, S)
-        d_t = d_t.view(tc.iters, R)
+        z_all = sample_depths(d_t, self.cfg.map, self.tgen).view(iters, R, S)
+        d_t = d_t.view(iters, R)
         T0 = self._t(init)
         xi = torch.zeros(6, device=self.device, requires_grad=True)
         opt = torch.optim.Adam([xi], lr=tc.lr)
@@ -282,7 +291,7 @@ class SLAM:
         self._set_map_grad(False)
         bad = ""
         try:
-            for it in range(tc.iters):
+            for it in range(iters):
                 T = T0 @ se3_exp(xi)
                 o = T[:3, 3].unsqueeze(0)
                 d = dirs_c[it] @ T[:3, :3].T
@@ -311,8 +320,8 @@ class SLAM:
             bad = f"jump of {jump:.3f} m > tracking.max_jump {tc.max_jump}"
         if bad:
             self._event(cur.idx, "diverged", bad)
-            return self._finish_track(cur, init, best_loss, tc.iters, True, t0, bad)
-        return self._finish_track(cur, orthonormalize(pose), best_loss, tc.iters, False, t0)
+            return self._finish_track(cur, init, best_loss, iters, True, t0, bad)
+        return self._finish_track(cur, orthonormalize(pose), best_loss, iters, False, t0)
 
     def _event(self, idx: int, kind: str, detail: str) -> None:
         self.events.append({"frame": int(idx), "kind": kind, "detail": detail})
