@@ -130,9 +130,13 @@ class Sequence:
         depth = raw.astype(np.float32) / np.float32(self.depth_scale)
         if self._undistorter is not None:
             depth = self._undistorter.depth(depth)
-        if cut and self.max_depth > 0:
-            depth[depth > self.max_depth] = 0.0
-        return depth
+        return self._cut(depth) if cut else depth
+
+    def _cut(self, depth: np.ndarray) -> np.ndarray:
+        """``depth`` without what lies beyond ``max_depth`` (a new array; the same one when there is no cut)."""
+        if self.max_depth <= 0:
+            return depth
+        return np.where(depth > self.max_depth, 0, depth).astype(np.float32)
 
     def _check_size(self, img: np.ndarray, path: Path, j: int, what: str = "image") -> None:
         w, h = self.intrinsics.width, self.intrinsics.height
@@ -155,9 +159,7 @@ class Sequence:
         rec = self.records[j]
         rgb = self.load_rgb(j)
         full = self.load_depth(j, cut=False)
-        depth = full
-        if self.max_depth > 0:
-            depth = np.where(full > self.max_depth, 0, full).astype(np.float32)
+        depth = self._cut(full)
         inst = dyn = None
         if rec.instances is not None:
             inst = self._load_labels(rec.instances, j, "instance").astype(np.int32)
@@ -165,7 +167,7 @@ class Sequence:
             dyn = self._load_labels(rec.dynamic, j, "dynamic-mask") > 0
         pose = None if rec.pose_c2w is None else rec.pose_c2w.copy()
         return Frame(index=j, timestamp=rec.timestamp, rgb=rgb, depth=depth, pose_c2w=pose,
-                     instance_ids=inst, dynamic_mask=dyn, depth_full=full if self.max_depth > 0 else None)
+                     instance_ids=inst, dynamic_mask=dyn, depth_full=None if depth is full else full)
 
 
 def _imread(path: Path, flags: int, where: str) -> np.ndarray:

@@ -15,6 +15,13 @@ from typing import Optional
 import numpy as np
 
 
+def _pixel_index(uv: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of the pixel nearest each keypoint ``uv`` (N×2, x then y), inside h×w."""
+    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return v, u
+
+
 @dataclass
 class FeatureSet:
     """Keypoints of one frame: pixel positions ``uv`` (N×2 float32), ORB descriptors ``des``
@@ -34,10 +41,7 @@ class FeatureSet:
         """The keypoints on pixels where ``mask`` (H×W bool) is true."""
         if mask is None or len(self) == 0:
             return self
-        h, w = mask.shape
-        u = np.clip(np.round(self.uv[:, 0]).astype(np.int64), 0, w - 1)
-        v = np.clip(np.round(self.uv[:, 1]).astype(np.int64), 0, h - 1)
-        return self.subset(mask[v, u])
+        return self.subset(mask[_pixel_index(self.uv, *mask.shape)])
 
     def to_dict(self) -> dict:
         return {"uv": self.uv.copy(), "des": self.des.copy(), "depth": self.depth.copy()}
@@ -93,10 +97,7 @@ class FeatureOdometry:
         if des is None or not kps:
             return FeatureSet.empty()
         uv = np.array([k.pt for k in kps], np.float32)
-        h, w = depth.shape
-        u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
-        v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
-        d = np.asarray(depth, np.float32)[v, u]
+        d = np.asarray(depth, np.float32)[_pixel_index(uv, *depth.shape)]
         d = np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
         return FeatureSet(uv, np.asarray(des, np.uint8), d)
 

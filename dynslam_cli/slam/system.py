@@ -342,8 +342,6 @@ class SLAM:
         ke = self.cfg.mapping.keyframe_every
         self._undo = (self._prev_depth, self._feat_ref)
         self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
-        if cur.idx == 0:
-            self.last_pnp = None
         self._update_feature_ref(cur)
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
