@@ -167,6 +167,50 @@ def test_module_bidirectional_object_that_left():
     assert inst_b.dynamic[_instance_of(inst_b, fb.gt == 2) - 1]
 
 
+class _ClassSegmenter:
+    """A segmenter with COCO-like class names that labels the toy person 'person', the box 'box'."""
+
+    names = {0: "person", 1: "box", 2: "chair"}
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def segment(self, rgb, depth=None):
+        from dynslam_cli.motion.types import Segmentation
+
+        gt = self.gt
+        ids = np.zeros(gt.shape, np.int32)
+        ids[gt == 1], ids[gt == 2] = 1, 2
+        return Segmentation(ids, np.array([0, 1], np.int64), np.ones(2, np.float32))
+
+
+def test_module_prior_classes_or_rule_and_errors():
+    from dynslam_cli.motion.module import prior_class_ids
+
+    seg = _ClassSegmenter(None)
+    assert prior_class_ids(seg, []).tolist() == []
+    assert prior_class_ids(seg, ["person", "chair"]).tolist() == [0, 2]
+    with pytest.raises(DynslamError, match="no class dog"):
+        prior_class_ids(seg, ["dog"])
+    with pytest.raises(DynslamError, match="needs a segmenter with class names.*GeometricSegmenter"):
+        _module(prior_classes=["person"])  # the weightless segmenter has no classes
+    mod = _module()
+    mod.segmenter = seg
+    f0 = _frame(0)
+    seg.gt = f0.gt
+    inst = mod.observe(f0, np.eye(4))
+    assert inst.dynamic.tolist() == [False, False] and inst.prior_probs is None  # g starts static
+    mod.prior_class_ids = prior_class_ids(seg, ["person"])
+    inst = mod.observe(f0, np.eye(4))
+    assert inst.dynamic.tolist() == [True, False] and inst.prior_probs.tolist() == [1.0, 0.0]
+    assert inst.static_mask[f0.gt == 1].sum() == 0 and inst.static_mask[f0.gt == 2].all()
+    mod.register_keyframe(0, inst)  # keyframes keep the class prior through re-classification
+    assert mod.keyframe_dynamic_ids(0).tolist() == [1]
+    # after the check the class prior still holds (the OR rule), whatever g learned
+    mod.check_and_update(f0, inst, np.eye(4), f0.depth, None)
+    assert inst.dynamic[0]
+
+
 def test_module_prior_or_rule_and_state_dict_round_trip(tmp_path):
     from dynslam_cli.motion.classifier import MotionClassifier, save_prior
 

@@ -47,6 +47,9 @@ class MotionConfig:
     replay_samples: int = opt(5, "n_c: instances drawn from the replay buffer per update.")
     replay_capacity: int = opt(1000, "Replay buffer size (reservoir sampling beyond it).")
     prior: str = opt("", "Prior classifier file (`dynslam prior fit`); empty = none. OR rule.")
+    prior_classes: list = opt([], "Class names that are dynamic by prior (OR rule), for a segmenter with classes: "
+                              "yolo-seg on COCO, e.g. [person]. The detector's class head is the prior classifier; "
+                              "empty = none.")
     centre_feature: bool = opt(False, "Concatenate the instance's 3-D centre to its embedding.")
     centre_scale: float = opt(1.0, "Multiplier on the 3-D centre (metres) when concatenated.")
     # --- inconsistency check

@@ -39,6 +39,22 @@ def dilation_radius(fraction: float, width: int) -> int:
     return max(0, int(round(float(fraction) * int(width))))
 
 
+def prior_class_ids(segmenter, names) -> np.ndarray:
+    """Class ids of ``names`` in the segmenter's class list (``motion.prior_classes``)."""
+    names = [str(n) for n in (names or [])]
+    if not names:
+        return np.zeros(0, np.int64)
+    table = getattr(segmenter, "names", None) or {}
+    if not table:
+        raise DynslamError(f"motion.prior_classes={names} needs a segmenter with class names (yolo-seg with a "
+                           f"YOLOv8-seg model); {type(segmenter).__name__} has none")
+    missing = [n for n in names if n not in table.values()]
+    if missing:
+        raise DynslamError(f"motion.prior_classes: no class {', '.join(missing)} in the segmenter model "
+                           f"(it has e.g. {', '.join(list(table.values())[:5])})")
+    return np.array(sorted(k for k, v in table.items() if v in names), np.int64)
+
+
 def instance_centres(depth: np.ndarray, ids: np.ndarray, k: int, intr: tuple, pose_c2w: np.ndarray,
                      step: int = 2) -> np.ndarray:
     """(k, 3) world-frame mean of the back-projected valid pixels of each instance (NaN if none)."""
@@ -76,6 +92,7 @@ class MotionModule:
         self.prior: Optional[MotionClassifier] = None
         if m.prior:
             self.prior = load_prior(m.prior, self.encoder.name, int(self.encoder.dim), self.device)
+        self.prior_class_ids = prior_class_ids(self.segmenter, m.prior_classes)
         self.keyframes: dict[int, dict] = {}
         self.updates = 0
 
@@ -86,9 +103,13 @@ class MotionModule:
         c = np.nan_to_num(centres.astype(np.float32)) * self.m.centre_scale
         return np.concatenate([emb.astype(np.float32), c], 1)
 
-    def _classify(self, feats: np.ndarray, emb: np.ndarray) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    def _classify(self, feats: np.ndarray, emb: np.ndarray,
+                  class_ids: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
         p = self.classifier.probs(feats)
         pp = self.prior.probs(emb) if self.prior is not None and len(emb) else None
+        if len(self.prior_class_ids) and class_ids is not None and len(class_ids) == len(p):
+            pc = np.isin(class_ids, self.prior_class_ids).astype(np.float32)
+            pp = pc if pp is None else np.maximum(pp, pc)
         dyn = p > 0.5
         final = p
         if pp is not None:
@@ -121,7 +142,7 @@ class MotionModule:
         t2 = time.perf_counter()
         centres = instance_centres(depth, seg.ids, k, self.intr, pose_c2w_guess)
         feats = self._features(emb, centres)
-        dyn, probs, pp = self._classify(feats, emb)
+        dyn, probs, pp = self._classify(feats, emb, seg.class_ids)
         t3 = time.perf_counter()
         inst = FrameInstances(
             frame_index=int(getattr(frame, "index", -1)), ids=seg.ids, embeddings=emb, centres=centres,
@@ -190,7 +211,7 @@ class MotionModule:
             self.replay.add(np.concatenate([movers, extra]))
         if record is not None:
             record.replay_size = len(self.replay)
-        dyn, probs, pp = self._classify(feats, inst.embeddings)
+        dyn, probs, pp = self._classify(feats, inst.embeddings, inst.class_ids)
         inst.dynamic, inst.probs, inst.prior_probs = dyn, probs, pp
         inst.static_mask = self._static_mask(inst.ids, dyn)
         inst.timings["check"] = (t1 - t0) * 1e3
