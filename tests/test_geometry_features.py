@@ -67,6 +67,29 @@ def test_estimate_recovers_the_relative_pose(tex):
     np.testing.assert_allclose(res.T[3], [0, 0, 0, 1])
 
 
+def test_estimate_multi_poses_the_camera_in_the_world_from_several_references(tex):
+    p_a = se3_exp_np(np.array([-0.05, 0.01, 0.0, 0.0, 0.02, 0.0]))
+    p_b = se3_exp_np(np.array([0.06, 0.0, 0.02, 0.01, -0.02, 0.0]))
+    p_cur = se3_exp_np(np.array([0.01, -0.01, 0.03, 0.01, 0.0, 0.01]))
+    odo = _odometry(n_features=1500)
+    mask_left = np.zeros((H, W), bool)
+    mask_left[:, : W // 2] = True
+    ref_a = odo.detect(*_render(p_a, tex), mask_left)  # each reference sees one half of its image
+    ref_b = odo.detect(*_render(p_b, tex), ~mask_left)
+    cur = odo.detect(*_render(p_cur, tex))
+    res = odo.estimate_multi([(p_a, ref_a), (p_b, ref_b)], cur)
+    assert res.ok and len(res.ref_inliers) == 2 and sum(res.ref_inliers) == res.inliers
+    assert min(res.ref_inliers) >= 30  # both references contribute
+    assert np.linalg.norm(res.T[:3, 3] - p_cur[:3, 3]) < 0.015
+    dR = res.T[:3, :3].T @ p_cur[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.5
+    # lifting: a reference's keypoints land on the scene, whatever its pose
+    X = odo.lift(ref_b, p_b)
+    assert np.all(np.abs(X[:, 2] - np.where(X[:, 0] < 0, NEAR_Z, FAR_Z)) < 0.02)
+    # no references: no pose
+    assert not odo.estimate_multi([], cur).ok
+
+
 def test_mask_and_missing_depth_remove_keypoints(tex):
     odo = _odometry(n_features=800)
     rgb, d = _render(np.eye(4), tex)

@@ -254,13 +254,15 @@ def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_ini
         return
     assert slam.last_pnp.ok and slam.last_pnp.inliers > 100
     assert np.linalg.norm(r1.pose_c2w[:3, 3] - poses[1][:3, 3]) < 0.015
-    assert slam._feat_ref[0] == 0  # many inliers: frame 0 stays the reference
+    assert [f for f, _ in slam._feat_refs] == [0]  # many inliers: frame 0 stays the only reference
+    assert slam.last_pnp.ref_inliers == (slam.last_pnp.inliers,)
     state = slam.state_dict()
     r2 = slam.process(TF(2))
     assert np.linalg.norm(r2.pose_c2w[:3, 3] - poses[2][:3, 3]) < 0.015
     back = SLAM(cfg, intr, torch.device("cpu"))
     back.load_state_dict(state)
-    assert back._feat_ref[0] == 0 and np.array_equal(back._feat_ref[1].des, state["feat_ref"]["des"])
+    assert [f for f, _ in back._feat_refs] == [0]
+    assert np.array_equal(back._feat_refs[0][1].des, state["feat_refs"][0]["des"])
     assert np.allclose(back.process(TF(2)).pose_c2w, r2.pose_c2w)
 
 

@@ -10,7 +10,7 @@ dense tracking refines (``tracking.feature_init``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -57,13 +57,15 @@ class FeatureSet:
 
 @dataclass
 class PnPResult:
-    """``T``: the current camera's pose in the reference camera's frame (4×4, ref ← cur);
-    ``ok`` when at least ``min_inliers`` matches agree."""
+    """``T``: the current camera's pose in the reference camera's frame (4×4, ref ← cur), or in
+    the world frame the references' poses are given in (``estimate_multi``); ``ok`` when at least
+    ``min_inliers`` matches agree; ``ref_inliers``: the inliers on each reference's keypoints."""
 
     T: np.ndarray
     matches: int
     inliers: int
     ok: bool
+    ref_inliers: tuple = ()
 
 
 class FeatureOdometry:
@@ -115,29 +117,48 @@ class FeatureOdometry:
                 ti.append(p[0].trainIdx)
         return has[np.asarray(qi, np.int64)], np.asarray(ti, np.int64)
 
+    def lift(self, fs: FeatureSet, pose: np.ndarray) -> np.ndarray:
+        """The keypoints of ``fs`` back-projected with their depth and moved by ``pose`` (N×3;
+        rows of keypoints without depth are meaningless)."""
+        z = fs.depth.astype(np.float64)
+        uv = fs.uv.astype(np.float64)
+        X = np.stack([(uv[:, 0] - self.K[0, 2]) / self.K[0, 0] * z, (uv[:, 1] - self.K[1, 2]) / self.K[1, 1] * z, z], 1)
+        return X @ np.asarray(pose, np.float64)[:3, :3].T + np.asarray(pose, np.float64)[:3, 3]
+
     def estimate(self, ref: FeatureSet, cur: FeatureSet) -> PnPResult:
         """The pose of the current camera in the reference camera's frame."""
+        return self.estimate_multi([(np.eye(4), ref)], cur)
+
+    def estimate_multi(self, refs: Sequence[tuple[np.ndarray, FeatureSet]], cur: FeatureSet) -> PnPResult:
+        """The pose of the current camera (camera-to-world) from its keypoints matched to those of
+        several reference frames at poses ``refs[i][0]`` (camera-to-world): one PnP over the
+        union of their 3-D points (a local map: fewer reference switches, so less drift)."""
         import cv2
 
         eye = np.eye(4)
-        qi, ti = self.match(ref, cur)
+        none = tuple(0 for _ in refs)
+        if not refs:
+            return PnPResult(eye, 0, 0, False, none)
+        allf = FeatureSet(np.concatenate([f.uv for _, f in refs]), np.concatenate([f.des for _, f in refs]),
+                          np.concatenate([f.depth for _, f in refs]))
+        src = np.concatenate([np.full(len(f), i) for i, (_, f) in enumerate(refs)])
+        qi, ti = self.match(allf, cur)
         if len(qi) < max(self.min_inliers, 6):
-            return PnPResult(eye, len(qi), 0, False)
-        z = ref.depth[qi].astype(np.float64)
-        uv = ref.uv[qi].astype(np.float64)
-        X = np.stack([(uv[:, 0] - self.K[0, 2]) / self.K[0, 0] * z, (uv[:, 1] - self.K[1, 2]) / self.K[1, 1] * z, z], 1)
+            return PnPResult(eye, len(qi), 0, False, none)
+        X = np.concatenate([self.lift(f, T) for T, f in refs])[qi]
         x = cur.uv[ti].astype(np.float64)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(X, x, self.K, None, iterationsCount=self.ransac_iters,
                                                  reprojectionError=self.ransac_px, confidence=0.999,
                                                  flags=cv2.SOLVEPNP_EPNP)
         if not ok or inl is None or len(inl) < self.min_inliers:
-            return PnPResult(eye, len(qi), 0 if inl is None else len(inl), False)
+            return PnPResult(eye, len(qi), 0 if inl is None else len(inl), False, none)
         inl = inl[:, 0]
         rvec, tvec = cv2.solvePnPRefineLM(X[inl], x[inl], self.K, None, rvec, tvec)
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
-            return PnPResult(eye, len(qi), len(inl), False)
+            return PnPResult(eye, len(qi), len(inl), False, none)
         R, _ = cv2.Rodrigues(rvec)
-        T = np.eye(4)  # ref <- cur: the inverse of the world(ref) -> camera(cur) transform PnP returns
+        T = np.eye(4)  # world <- cur: the inverse of the world -> camera(cur) transform PnP returns
         T[:3, :3] = R.T
         T[:3, 3] = -R.T @ tvec[:, 0]
-        return PnPResult(T, len(qi), len(inl), True)
+        per = np.bincount(src[qi[inl]], minlength=len(refs))
+        return PnPResult(T, len(qi), len(inl), True, tuple(int(v) for v in per))

@@ -45,6 +45,11 @@ class TrackingConfig:
                                   "least this fraction of its keypoints with depth as inliers; below it the frame "
                                   "just tracked becomes the reference (fewer, longer baselines drift less than "
                                   "frame-to-frame chaining).")
+    feature_refs: int = opt(1, "Feature init: PnP runs on the keypoints of up to this many reference frames at once (a "
+                            "local map, lifted with their current poses); 1 = one reference. Chained PnP alone on the "
+                            "Bonn crowd clip with person masks: 1.9-3.1 cm ATE with 5-10 references against 2.6-6.9 "
+                            "with one, across reference-switch thresholds; but with dense tracking on top (static "
+                            "mode, frames 0-39) 8 references scored 2.43 / 2.41 cm against 1.54 / 1.85 with one.")
     edge_margin: int = opt(2, "Do not sample tracking rays within this many pixels of a depth discontinuity (a step "
                            "of >5 % at 540 px focal length, or a hole): the map blurs edges, and on real depth they "
                            "bias the pose; 0 = sample them.")

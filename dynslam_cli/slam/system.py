@@ -109,7 +109,7 @@ class SLAM:
         self._cur: Optional[_Current] = None
         self._kf_cache = None  # concatenated keyframe rays (torch) and owners
         self._prev_depth: Optional[np.ndarray] = None  # last tracked frame's (masked) depth, ICP reference
-        self._feat_ref: Optional[tuple[int, FeatureSet]] = None  # (frame id, keypoints): feature-init reference
+        self._feat_refs: list[tuple[int, FeatureSet]] = []  # (frame id, keypoints): feature-init references
         self._odometry: Optional[FeatureOdometry] = None
         self._undo: Optional[tuple] = None  # (ICP reference, feature reference) before the last track(), for retrack()
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
@@ -174,12 +174,12 @@ class SLAM:
             rel = inv_np(self.poses[-2]) @ p1
         self.last_icp = None
         self.last_pnp = None
-        if tc.feature_init and cur is not None and self._feat_ref is not None and "features" in cur.extra:
-            ref_id, ref = self._feat_ref
-            res = self._feature_odometry().estimate(ref, cur.extra["features"])
+        if tc.feature_init and cur is not None and self._feat_refs and "features" in cur.extra:
+            refs = [(self._pose_of(fid), fs) for fid, fs in self._feat_refs]
+            res = self._feature_odometry().estimate_multi(refs, cur.extra["features"])
             self.last_pnp = res
             if res.ok:
-                cand = inv_np(p1) @ self.poses[ref_id] @ res.T
+                cand = inv_np(p1) @ res.T
                 if float(np.linalg.norm(cand[:3, 3] - rel[:3, 3])) <= tc.max_jump:
                     rel = cand
                     return orthonormalize(p1 @ rel)  # ICP only where the features fail
@@ -209,19 +209,27 @@ class SLAM:
         depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
         cur.extra["features"] = self._feature_odometry().detect(cur.rgb_np, depth, cur.mask)
 
+    def _pose_of(self, i: int) -> np.ndarray:
+        """Frame ``i``'s pose as the trajectory has it (relative to its keyframe, which bundle
+        adjustment refines)."""
+        r = self.rel[i]
+        return self.poses[i] if r is None else self.poses[self.kf_of[i]] @ r
+
     def _update_feature_ref(self, cur: _Current) -> None:
-        """The frame just tracked becomes the feature reference when there is none, when its
-        feature init failed, or when it shared too few inliers with the reference."""
+        """The frame just tracked becomes a feature reference when there is none, when its feature
+        init failed, or when it shared too few inliers with the newest reference; the oldest
+        beyond tracking.feature_refs are dropped."""
         fs = cur.extra.get("features")
         if fs is None:
-            self._feat_ref = None
+            self._feat_refs = []
             return
         res = self.last_pnp
-        if self._feat_ref is not None and res is not None and res.ok:
-            n_ref = int((self._feat_ref[1].depth > 0).sum())
-            if res.inliers >= self.cfg.tracking.feature_keep_ref * n_ref:
+        tc = self.cfg.tracking
+        if self._feat_refs and res is not None and res.ok:
+            n_ref = int((self._feat_refs[-1][1].depth > 0).sum())
+            if res.ref_inliers[-1] >= tc.feature_keep_ref * n_ref:
                 return
-        self._feat_ref = (cur.idx, fs)
+        self._feat_refs = (self._feat_refs + [(cur.idx, fs)])[-max(1, tc.feature_refs):]
 
     def _edges(self, cur: _Current, margin: int) -> np.ndarray:
         """Depth-edge pixels of the current frame within ``margin`` px (cached per margin).
@@ -335,12 +343,12 @@ class SLAM:
             raise DynslamError("SLAM.retrack() must follow track() of the same frame (not the first)")
         for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
             lst.pop()
-        self._prev_depth, self._feat_ref = self._undo
+        self._prev_depth, self._feat_refs = self._undo
         return self.track(frame, mask)
 
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
-        self._undo = (self._prev_depth, self._feat_ref)
+        self._undo = (self._prev_depth, list(self._feat_refs))
         self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
         self._update_feature_ref(cur)
         self.poses.append(np.array(pose, np.float64))
@@ -365,8 +373,8 @@ class SLAM:
             cur.mask = np.asarray(mask, bool)
             if self.cfg.tracking.icp_init:  # the next frame's ICP aligns to the static pixels as now known
                 self._prev_depth = self._icp_depth(cur)
-            if self._feat_ref is not None and self._feat_ref[0] == cur.idx:  # so do the next frames' features
-                self._feat_ref = (cur.idx, self._feat_ref[1].masked(cur.mask))
+            if self._feat_refs and self._feat_refs[-1][0] == cur.idx:  # so do the next frames' features
+                self._feat_refs[-1] = (cur.idx, self._feat_refs[-1][1].masked(cur.mask))
         mc = self.cfg.mapping
         t0 = time.perf_counter()
         ba = False
@@ -632,7 +640,7 @@ class SLAM:
             "rng": self.rng.bit_generator.state,
             "tgen": self.tgen.get_state().cpu(),
             "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
-            "feat_ref": None if self._feat_ref is None else {"frame": self._feat_ref[0], **self._feat_ref[1].to_dict()},
+            "feat_refs": [{"frame": fid, **fs.to_dict()} for fid, fs in self._feat_refs],
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -653,5 +661,4 @@ class SLAM:
         self._kf_cache = None
         pd = d.get("prev_depth")
         self._prev_depth = None if pd is None else np.asarray(pd, np.float32)
-        fr = d.get("feat_ref")
-        self._feat_ref = None if fr is None else (int(fr["frame"]), FeatureSet.from_dict(fr))
+        self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in d.get("feat_refs", [])]
