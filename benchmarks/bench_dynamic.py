@@ -28,12 +28,24 @@ sys.path.insert(0, str(REPO))
 
 
 YOLO = REPO.parent / "shared" / "models" / "yolov8n-seg_deq_fp32.onnx"
+PERSON = REPO / "configs" / "yolo-person.yaml"
+
+
+def overlay_sets(path: Path) -> list[str]:
+    """A config overlay file as section.key=value overrides."""
+    import yaml
+
+    return [f"{sec}.{k}={json.dumps(v)}" for sec, kv in yaml.safe_load(path.read_text()).items() for k, v in kv.items()]
+
+
 # --modes names -> config overrides
 MODES = {
     "dynamic": ["run.mode=dynamic"],
     "static": ["run.mode=static"],
     "dynamic-noreplay": ["run.mode=dynamic", "motion.replay=false"],
     "dynamic-yolo": ["run.mode=dynamic", "motion.segmenter=yolo-seg", f"motion.segmenter_model={YOLO}"],
+    # configs/yolo-person.yaml: people dynamic from the start, keypoints' local map, BA map-only
+    "dynamic-yolo-person": ["run.mode=dynamic", f"motion.segmenter_model={YOLO}"] + overlay_sets(PERSON),
 }
 
 
@@ -89,8 +101,9 @@ def main() -> None:
     bad = [m for m in modes if m not in MODES]
     if bad:
         ap.error(f"unknown mode(s) {', '.join(bad)}; choose from {', '.join(MODES)}")
-    if "dynamic-yolo" in modes and not YOLO.is_file():
-        ap.error(f"mode dynamic-yolo needs {YOLO}")
+    for m in ("dynamic-yolo", "dynamic-yolo-person"):
+        if m in modes and not YOLO.is_file():
+            ap.error(f"mode {m} needs {YOLO}")
     rows = []
     for spec, sets, name in cases:
         for mode in modes:
