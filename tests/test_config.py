@@ -79,3 +79,11 @@ def test_cli_config_show_and_error():
     assert r.exit_code == 2
     assert "unknown config key 'map.bogus'" in r.output
     assert "Traceback" not in r.output
+
+
+def test_yolo_person_overlay_loads_over_bonn():
+    root = Path(__file__).resolve().parents[1] / "configs"
+    cfg = load_config("bonn", "crowd", config_file=root / "yolo-person.yaml")
+    assert cfg.motion.segmenter == "yolo-seg" and cfg.motion.prior_classes == ["person"]
+    assert cfg.tracking.feature_refs == 8 and cfg.mapping.lr_pose == 0.0
+    assert cfg.tracking.feature_init and cfg.data.max_depth == 3.0  # bonn.yaml beneath it
