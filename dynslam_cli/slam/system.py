@@ -661,4 +661,6 @@ class SLAM:
         self._kf_cache = None
         pd = d.get("prev_depth")
         self._prev_depth = None if pd is None else np.asarray(pd, np.float32)
-        self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in d.get("feat_refs", [])]
+        old = d.get("feat_ref")  # checkpoints written before tracking.feature_refs held one reference
+        refs = d.get("feat_refs", [] if old is None else [old])
+        self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in refs]
