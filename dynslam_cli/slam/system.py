@@ -553,14 +553,9 @@ class SLAM:
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> np.ndarray:
         """(N, 4, 4) c2w; non-keyframes re-expressed relative to their refined keyframe."""
-        kf_pose = {k.frame_id: k.pose_c2w for k in self.keyframes}
         out = np.zeros((self.n_frames, 4, 4))
         for i in range(self.n_frames):
-            k = self.kf_of[i]
-            if self.rel[i] is not None and k in kf_pose:
-                out[i] = kf_pose[k] @ self.rel[i]
-            else:
-                out[i] = self.poses[i]
+            out[i] = self._pose_of(i)
         return out
 
     @torch.no_grad()
