@@ -170,6 +170,18 @@ def test_geometric_speed_320x240():
     assert min(times) < 0.1  # ~5 ms on one core; generous for a loaded machine
 
 
+def test_geometric_fills_sensor_holes_with_the_surrounding_segment():
+    rgb, depth, gt = render_toy(320, 240, noise=0.003)
+    holes = np.random.default_rng(0).random(depth.shape) < 0.01  # 1 % isolated pixels without depth
+    depth[holes] = 0
+    seg = GeometricSegmenter(intrinsics=toy_intrinsics(320, 240)).segment(rgb, depth)
+    person = gt == 1
+    k = np.bincount(seg.ids[person & ~holes]).argmax()
+    # the person's holes belong to the person (the motion mask has no pinholes), not to 'no segment'
+    assert (seg.ids[person & holes] == k).mean() > 0.9
+    assert (seg.ids[holes] == 0).mean() < 0.05
+
+
 def test_geometric_handles_holes_and_no_rgb():
     rgb, depth, gt = render_toy(160, 120)
     depth[:, :40] = 0  # a band without depth

@@ -8,7 +8,8 @@ Works at a reduced resolution (``geometric_width``, 160 px by default):
    than ``color_jump`` while the depth also steps by a quarter of the jump; invalid depth is an edge;
 3. edges are dilated by one pixel (so that thin bridges do not leak regions into each other), the
    remaining pixels are split into 4-connected components, components under ``min_area`` are
-   discarded, and edge pixels within 6 px of a component join the nearest one;
+   discarded, and edge pixels, dropped specks and pixels without depth (holes) within 6 px of a
+   component join the nearest one;
 4. the id map is upsampled to the frame (nearest).
 
 Planar structures (walls, floor, table tops) become segments of their own, separated at creases;
@@ -139,8 +140,9 @@ class GeometricSegmenter:
         keep[0] = False
         lut = np.where(keep, np.arange(n_lab), 0).astype(np.int32)
         lab_map = lut[lab_map]
-        # edge pixels and dropped specks join the nearest kept component within fill_radius
-        unl = (lab_map == 0) & valid
+        # edge pixels, dropped specks and pixels without depth (sensor holes, which the median
+        # filter widens) join the nearest kept component within fill_radius
+        unl = lab_map == 0
         if unl.any() and keep.any():
             src = (lab_map == 0).astype(np.uint8)
             dist, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
