@@ -187,14 +187,20 @@ def test_stationary_labels_only_with_centre_feature_or_when_asked():
     ids = np.ones((48, 64), np.int32)
     kfs = [SimpleNamespace(frame_id=i, pose_c2w=np.eye(4), depth_raw_small=subsample_depth(depth)) for i in (2, 4)]
 
-    def loop(centre, anyway):
-        return SimpleNamespace(still_frames=10, still_without_centre=anyway,
+    def loop(centre, anyway, tol=0.0):
+        return SimpleNamespace(still_frames=10, still_without_centre=anyway, still_tolerance=tol,
                                mm=SimpleNamespace(m=SimpleNamespace(centre_feature=centre, depth_threshold=0.3)),
                                slam=SimpleNamespace(n_frames=6, keyframes=kfs, intr=intr))
 
     assert DynamicLoop.stationary(loop(False, False), depth, ids, np.eye(4)) is None
     assert DynamicLoop.stationary(loop(True, False), depth, ids, np.eye(4)).tolist() == [True]
     assert DynamicLoop.stationary(loop(False, True), depth, ids, np.eye(4)).tolist() == [True]
+    # run.still_tolerance: 10 cm closer than the keyframes saw is 'stayed put' within t_d (0.3 m,
+    # the default) but not within 5 cm
+    closer = depth - 0.1
+    assert DynamicLoop.stationary(loop(False, True), closer, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(False, True, 0.05), closer, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(False, True, 0.15), closer, ids, np.eye(4)).tolist() == [True]
 
 
 def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():

@@ -39,6 +39,7 @@ class DynamicLoop:
         self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.still_frames = int(cfg.run.still_frames)
         self.still_without_centre = bool(cfg.run.still_without_centre)
+        self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
@@ -104,7 +105,8 @@ class DynamicLoop:
 
         now = self.slam.n_frames - 1
         window = [kf for kf in self.slam.keyframes if now - self.still_frames <= kf.frame_id < now]
-        return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, self.mm.m.depth_threshold)
+        tol = self.still_tolerance if self.still_tolerance > 0 else self.mm.m.depth_threshold
+        return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, tol)
 
     def forget_departed(self, res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray) -> int:
         """With ``run.forget_radius`` > 0: the keyframe rays on the surface of what the backward
