@@ -181,8 +181,7 @@ class SLAM:
             if res.ok:
                 cand = inv_np(p1) @ res.T
                 if float(np.linalg.norm(cand[:3, 3] - rel[:3, 3])) <= tc.max_jump:
-                    rel = cand
-                    return orthonormalize(p1 @ rel)  # ICP only where the features fail
+                    return orthonormalize(p1 @ cand)  # ICP only where the features fail
         if tc.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
                             init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
