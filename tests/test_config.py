@@ -41,11 +41,23 @@ def test_overrides_types_and_precedence(tmp_path: Path):
     ("nosection.x=1", "unknown config key 'nosection'"),
     ("tracking.iters=abc", "must be an integer"),
     ("run.save_masks=3", "must be true/false"),
+    ("map.w_smooth=1e-8x", "must be a number"),
+    ("map.w_smooth=e-8", "must be a number"),
     ("tracking", "section.key=value"),
 ])
 def test_bad_overrides(override, fragment):
     with pytest.raises(DynslamError, match=fragment.replace("(", r"\(").replace(".", r"\.")):
         apply_overrides(Config(), [override])
+
+
+def test_exponent_without_a_dot_is_a_number(tmp_path: Path):
+    # PyYAML (YAML 1.1) reads 1e-8 as a string; float fields accept it from --set and from files
+    f = tmp_path / "c.yaml"
+    f.write_text("map:\n  w_smooth: 5E+3\n")
+    cfg = load_config(config_file=f, overrides=["map.w_depth=1e-8", "map.w_rgb=-2.5e1"])
+    assert cfg.map.w_smooth == 5000.0 and cfg.map.w_depth == 1e-8 and cfg.map.w_rgb == -25.0
+    with pytest.raises(DynslamError, match="must be an integer"):
+        apply_overrides(Config(), ["tracking.iters=1e3"])
 
 
 def test_unknown_key_in_file_names_file_and_valid_keys(tmp_path: Path):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import fnmatch
+import re
 import types
 import typing
 from pathlib import Path
@@ -58,6 +59,10 @@ def _field_types(cls) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
+# numbers YAML 1.1 leaves as strings: exponents without a dot (1e-8, 5E+3)
+_FLOAT_TEXT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
     """Check/convert a YAML value to the field's annotated type."""
     origin = typing.get_origin(tp)
@@ -89,6 +94,8 @@ def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()):
+            return float(value)  # PyYAML (YAML 1.1) reads 1e-8 without a dot as a string
         raise DynslamError(f"config key '{key}' in {source} must be a number, got {value!r}")
     if tp is str:
         if isinstance(value, str):
