@@ -75,3 +75,41 @@ def test_map_forward_matches_the_concatenated_decoders():
     c2 = torch.sigmoid(m.color_net(torch.cat([b, h[:, 1:]], -1)))
     assert torch.allclose(s, h[:, 0], atol=1e-5) and torch.allclose(c, c2, atol=1e-5)
     assert c.min() >= 0 and c.max() <= 1 and m(x, color=False)[1] is None
+
+
+def test_smoothness_from_the_ray_query_matches_the_separate_grid_call():
+    """Bundle adjustment takes the smoothness cube's features from the rays' grid call; loss and
+    table gradient equal those of the separate smoothness_loss call."""
+    from dynslam_cli.map.losses import smoothness_loss, smoothness_points, smoothness_tv
+    from dynslam_cli.map.model import NeuralMap
+    from dynslam_cli.map.render import render_rays
+
+    torch.manual_seed(0)
+    cfg = Config().map
+    cfg.n_levels, cfg.log2_hashmap_size, cfg.smooth_grid, cfg.smooth_voxel = 4, 10, 4, 0.2
+    m = NeuralMap(cfg, [[-1, -1, 0], [1, 1, 3]])
+    with torch.no_grad():
+        m.grid.embeddings.uniform_(-0.1, 0.1)
+    o = torch.zeros(1, 3)
+    d = torch.nn.functional.normalize(torch.rand(32, 3) - torch.tensor([0.5, 0.5, -1.0]), dim=1)
+    z = sample_depths(torch.full((32,), 1.5), cfg, torch.Generator().manual_seed(1))
+    box = torch.tensor([[-1.0, -1.0, 0.0], [0.2, 0.2, 2.2]])
+    grads, losses = [], []
+    for merged in (False, True):
+        m.zero_grad(set_to_none=True)
+        g = torch.Generator().manual_seed(3)
+        if merged:
+            pts = smoothness_points(box, cfg, g)
+            out = render_rays(m, o, d, z, grid_extra=pts)
+            assert out["grid_extra"].shape == (4 ** 3, m.grid.out_dim)
+            smooth = smoothness_tv(out["grid_extra"], cfg)
+        else:
+            out = render_rays(m, o, d, z)
+            assert out["grid_extra"] is None
+            smooth = smoothness_loss(m, box, cfg, g)
+        loss = out["depth"].square().mean() + 1e3 * smooth
+        loss.backward()
+        losses.append(float(smooth))
+        grads.append(m.grid.embeddings.grad.clone())
+    assert losses[0] > 0 and abs(losses[0] - losses[1]) <= 1e-6 * losses[0]
+    assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-9)

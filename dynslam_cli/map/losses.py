@@ -54,17 +54,29 @@ def ray_losses(out: dict, z: torch.Tensor, target_rgb: torch.Tensor, target_d: t
     return LossTerms(total, rgb, depth, sdf, free)
 
 
-def smoothness_loss(model, centre_range: torch.Tensor, cfg: MapConfig, generator: torch.Generator | None = None):
-    """Total variation of grid features on a small random cube of points (Co-SLAM smoothness).
-
-    centre_range: (2, 3) world-space box where the cube's corner is drawn."""
+def smoothness_points(centre_range: torch.Tensor, cfg: MapConfig, generator: torch.Generator | None = None):
+    """The smoothness loss's points: a cube of ``smooth_grid``^3 points ``smooth_voxel`` apart whose
+    corner is drawn uniformly in the world-space box centre_range (2, 3)."""
     n = cfg.smooth_grid
     dev = centre_range.device
     lo = centre_range[0] + torch.rand(3, device=dev, generator=generator) * (centre_range[1] - centre_range[0])
     k = torch.arange(n, device=dev, dtype=torch.float32) * cfg.smooth_voxel
     gx, gy, gz = torch.meshgrid(k, k, k, indexing="ij")
-    pts = torch.stack([gx, gy, gz], -1).reshape(-1, 3) + lo
-    f = model.grid_features(pts).view(n, n, n, -1)
+    return torch.stack([gx, gy, gz], -1).reshape(-1, 3) + lo
+
+
+def smoothness_tv(features: torch.Tensor, cfg: MapConfig) -> torch.Tensor:
+    """Total variation of the grid features (smooth_grid^3, C) of :func:`smoothness_points`."""
+    n = cfg.smooth_grid
+    f = features.view(n, n, n, -1)
     tv = ((f[1:, :-1, :-1] - f[:-1, :-1, :-1]).square() + (f[:-1, 1:, :-1] - f[:-1, :-1, :-1]).square()
           + (f[:-1, :-1, 1:] - f[:-1, :-1, :-1]).square())
     return tv.mean()
+
+
+def smoothness_loss(model, centre_range: torch.Tensor, cfg: MapConfig, generator: torch.Generator | None = None):
+    """Total variation of grid features on a small random cube of points (Co-SLAM smoothness).
+
+    centre_range: (2, 3) world-space box where the cube's corner is drawn.  Bundle adjustment
+    computes the same from the ray query's grid call (``render_rays(grid_extra=...)``)."""
+    return smoothness_tv(model.grid_features(smoothness_points(centre_range, cfg, generator)), cfg)

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 import torch
@@ -71,21 +72,34 @@ class NeuralMap(torch.nn.Module):
 
     def forward(self, pts: torch.Tensor, color: bool = True):
         """World points (N, 3) -> sdf (N,) in truncation units, rgb (N, 3) in [0, 1] (or None)."""
+        sdf, rgb, _ = self.query(pts, color)
+        return sdf, rgb
+
+    def query(self, pts: torch.Tensor, color: bool = True, grid_extra: Optional[torch.Tensor] = None):
+        """:meth:`forward`, plus the grid features of the world points ``grid_extra`` (M, 3) (as
+        :meth:`grid_features`) from the same hash grid call, or None: one table gradient per
+        mapping iteration instead of two when the smoothness loss needs features."""
         x = self.normalize(pts)
         blob = self.blob(x)
         g = self.grid.out_dim
+        n = x.shape[0]
+        if grid_extra is None:
+            feats, extra = self.grid(x), None
+        else:
+            both = self.grid(torch.cat([x, self.normalize(grid_extra).clamp(0, 1)]))
+            feats, extra = both[:n], both[n:]
         # first layers as split matmuls (no concatenated copies): W [grid | blob] = W_g grid + W_b blob
         l0, l1 = self.sdf_net.layers
-        hid = torch.addmm(F.linear(blob, l0.weight[:, g:], l0.bias), self.grid(x), l0.weight[:, :g].t())
+        hid = torch.addmm(F.linear(blob, l0.weight[:, g:], l0.bias), feats, l0.weight[:, :g].t())
         h = F.linear(F.relu(hid), l1.weight, l1.bias)
         sdf = h[:, 0]
         if not color:
-            return sdf, None
+            return sdf, None, extra
         c0, c1 = self.color_net.layers
         nb = self.blob.out_dim
         hc = torch.addmm(F.linear(blob, c0.weight[:, :nb], c0.bias), h[:, 1:], c0.weight[:, nb:].t())
         rgb = torch.sigmoid(F.linear(F.relu(hc), c1.weight, c1.bias))
-        return sdf, rgb
+        return sdf, rgb, extra
 
     def grid_features(self, pts: torch.Tensor) -> torch.Tensor:
         return self.grid(self.normalize(pts).clamp(0, 1))

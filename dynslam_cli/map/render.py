@@ -70,16 +70,18 @@ def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, truncation: float) -> torch.
     return w / (w.sum(dim=1, keepdim=True) + 1e-8)
 
 
-def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, z: torch.Tensor, color: bool = True):
+def render_rays(model, rays_o: torch.Tensor, rays_d: torch.Tensor, z: torch.Tensor, color: bool = True,
+                grid_extra: torch.Tensor | None = None):
     """Query the map along rays. rays_o (R, 3) or (1, 3), rays_d (R, 3), z (R, S).
 
-    Returns dict: sdf (R, S), rgb (R, 3) or None, depth (R,), weights (R, S)."""
+    Returns dict: sdf (R, S), rgb (R, 3) or None, depth (R,), weights (R, S), and grid_extra: the
+    grid features of the world points ``grid_extra`` (M, 3) from the same grid call (or None)."""
     r, s = z.shape
     pts = rays_o[:, None, :] + rays_d[:, None, :] * z[..., None]
-    sdf, rgb = model(pts.reshape(-1, 3), color=color)
+    sdf, rgb, extra = model.query(pts.reshape(-1, 3), color=color, grid_extra=grid_extra)
     sdf = sdf.view(r, s)
     w = sdf_weights(sdf, z, model.truncation)
-    out = {"sdf": sdf, "weights": w, "depth": (w * z).sum(dim=1), "rgb": None}
+    out = {"sdf": sdf, "weights": w, "depth": (w * z).sum(dim=1), "rgb": None, "grid_extra": extra}
     if color:
         out["rgb"] = (w[..., None] * rgb.view(r, s, 3)).sum(dim=1)
     return out

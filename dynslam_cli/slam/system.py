@@ -20,7 +20,7 @@ from dynslam_cli.geometry.camera import backproject, pixel_dirs
 from dynslam_cli.geometry.features import FeatureOdometry, FeatureSet
 from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
-from dynslam_cli.map.losses import ray_losses, smoothness_loss
+from dynslam_cli.map.losses import ray_losses, smoothness_points, smoothness_tv
 from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.map.render import render_rays, sample_depths
 from dynslam_cli.slam.keyframes import Keyframe, depth_edges, subsample_depth, valid_pixels
@@ -507,10 +507,12 @@ class SLAM:
             Ts = T[own]
             o = Ts[:, :3, 3]
             d = (Ts[:, :3, :3] @ dirs_a[it][..., None])[..., 0]
-            out = render_rays(self.model, o, d, z_a[it])
+            # the smoothness cube's grid features come from the rays' grid call (one table gradient)
+            spts = None if smooth_box is None else smoothness_points(smooth_box, mp, self.tgen)
+            out = render_rays(self.model, o, d, z_a[it], grid_extra=spts)
             loss = ray_losses(out, z_a[it], rgb_a[it], d_a[it], mp).total
-            if smooth_box is not None:
-                loss = loss + mp.w_smooth * smoothness_loss(self.model, smooth_box, mp, self.tgen)
+            if spts is not None:
+                loss = loss + mp.w_smooth * smoothness_tv(out["grid_extra"], mp)
             self.map_opt.zero_grad(set_to_none=True)
             loss.backward()
             self.map_opt.step()
