@@ -215,3 +215,30 @@ def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():
     assert kf.gone.tolist() == [True, False, False] and kf.usable.tolist() == [False, True, True]
     assert forget_near([kf], left, intr, 0.05) == 0  # already gone
     assert forget_near([kf], np.zeros((0, 3)), intr, 0.05) == 0
+
+
+def test_forget_seen_through_marks_rays_a_later_view_sees_past():
+    from dynslam_cli.slam.keyframes import forget_seen_through
+
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    # rays on a box at 1 m (centre), on the wall at 3 m (top-left) and on the box's edge pixel
+    pixels = np.array([[31, 23], [10, 10], [40, 23]], np.int32)
+    kf = Keyframe(0, 0.0, pixels, np.zeros((3, 3), np.uint8), np.array([1.0, 3.0, 1.0], np.float32),
+                  np.zeros(3, np.int32), np.ones(3, bool), np.eye(4))
+    now = np.full((48, 64), 3.0, np.float32)  # the box has gone: the wall behind it everywhere ...
+    now[20:27, 41:48] = 0.0  # ... but for a hole right of the edge ray (within its 3 px window)
+    assert forget_seen_through([kf], now, np.eye(4), intr, margin=0.3, window=3) == 1
+    assert kf.gone.tolist() == [True, False, False] and kf.usable.tolist() == [False, True, True]
+    assert forget_seen_through([kf], now, np.eye(4), intr, margin=0.3, window=3) == 0  # already gone
+    # the box still there (same depth), or the view stopping within the margin: nothing goes
+    kf2 = Keyframe(0, 0.0, pixels, np.zeros((3, 3), np.uint8), np.array([1.0, 3.0, 1.0], np.float32),
+                   np.zeros(3, np.int32), np.ones(3, bool), np.eye(4))
+    still = np.full((48, 64), 3.0, np.float32)
+    still[15:32, 20:45] = 1.0
+    assert forget_seen_through([kf2], still, np.eye(4), intr, margin=0.3) == 0
+    assert forget_seen_through([kf2], np.full((48, 64), 1.2, np.float32), np.eye(4), intr, margin=0.3) == 0
+    # a camera moved 0.5 m to the right sees the box's point at another pixel, through to the wall
+    moved = np.eye(4)
+    moved[0, 3] = 0.5
+    assert forget_seen_through([kf2], np.full((48, 64), 3.0, np.float32), moved, intr, margin=0.3) == 2
+    assert kf2.gone.tolist() == [True, False, True]

@@ -42,6 +42,8 @@ class DynamicLoop:
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
+        self.carve_margin = float(cfg.run.carve_margin)
+        self.carved = 0  # keyframe rays marked gone by carve
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -136,6 +138,21 @@ class DynamicLoop:
         self.forgotten += n
         return n
 
+    def carve(self, depth: np.ndarray, static_mask: np.ndarray) -> int:
+        """With ``run.carve_margin`` > 0: the earlier keyframes' rays that the newest keyframe sees
+        through on its static pixels are marked gone (the surface they recorded has left: a
+        picked-up box, a person who walked on). Returns the rays newly marked."""
+        kfs = self.slam.keyframes
+        if self.carve_margin <= 0 or len(kfs) < 2:
+            return 0
+        from dynslam_cli.slam.keyframes import forget_seen_through
+
+        d = np.where(static_mask, np.asarray(depth, np.float32), 0).astype(np.float32)
+        window = max(1, int(round(3 * self.width / 640)))
+        n = forget_seen_through(kfs[:-1], d, kfs[-1].pose_c2w, self.slam.intr, self.carve_margin, window)
+        self.carved += n
+        return n
+
     def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of
         each keyframe ray ``pixels`` (u, v), so that re-masking a keyframe after a classifier
@@ -228,6 +245,7 @@ class DynamicLoop:
             kf = self.slam.keyframes[-1]
             kf.near_ids = self.near_ids(inst.ids, kf.pixels)
             self.mm.register_keyframe(kf.frame_id, inst)
+            self.carve(frame.depth, inst.static_mask)
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:

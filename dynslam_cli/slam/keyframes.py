@@ -221,3 +221,35 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
         kf.gone |= hit
         kf.usable &= ~kf.gone
     return newly
+
+
+def forget_seen_through(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr, margin: float,
+                        window: int = 3) -> int:
+    """Mark as ``gone`` (never usable again) the keyframe rays whose surface point a camera at
+    ``pose_c2w`` with (static) ``depth`` (H, W; 0 = none) sees through: the point projects into the
+    image and every valid depth within ``window`` pixels lies more than ``margin`` (m) behind it
+    (camera z). A pixel with an invalid neighbour judges nothing, so depth edges, holes and masked
+    movers carve nothing and a small pose error next to a thin object does not either.
+    Returns the number of rays newly marked."""
+    import cv2
+
+    d = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+    if not keyframes or margin <= 0 or not (d > 0).any():
+        return 0
+    H, W = d.shape
+    near = cv2.erode(d, np.ones((2 * window + 1, 2 * window + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=0) if window > 0 else d
+    newly = 0
+    for kf in keyframes:
+        if kf.gone is None:
+            kf.gone = np.zeros(len(kf), bool)
+        pc, u, v, inside = _project(kf.world_points(intr), pose_c2w, intr, W, H)
+        idx = np.flatnonzero(inside & ~kf.gone)
+        if len(idx) == 0:
+            continue
+        dn = near[np.round(v[idx]).astype(np.int64), np.round(u[idx]).astype(np.int64)]
+        hit = idx[(dn > 0) & (dn > pc[idx, 2] + margin)]
+        newly += len(hit)
+        kf.gone[hit] = True
+        kf.usable &= ~kf.gone
+    return newly
