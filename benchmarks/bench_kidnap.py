@@ -253,7 +253,7 @@ def main() -> None:
         ate = evaluate_run_ate(out, plot=False)
         timing = json.loads((out / "timing.json").read_text())
         dyn = v != "static"
-        first = np.loadtxt(out / "traj_est.txt", max_rows=1)
+        first = np.loadtxt(out / "traj_est.txt", ndmin=2)[0]
         offset_mm = 1000 * float(np.linalg.norm(first[1:4] - frames["old"][0].pose_c2w[:3, 3]))
         if offset_mm > 1.0:
             print(f"warning: {v}: frame 0 of traj_est.txt is {offset_mm:.1f} mm from its ground truth; the "

@@ -242,3 +242,34 @@ def test_forget_seen_through_marks_rays_a_later_view_sees_past():
     moved[0, 3] = 0.5
     assert forget_seen_through([kf2], np.full((48, 64), 3.0, np.float32), moved, intr, margin=0.3) == 2
     assert kf2.gone.tolist() == [True, False, True]
+
+
+def test_forget_overtaken_marks_rays_whose_free_space_a_newcomer_fills():
+    from dynslam_cli.slam.keyframes import forget_overtaken
+
+    intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    wall = np.full((48, 64), 3.0, np.float32)
+    boxed = wall.copy()
+    boxed[15:32, 20:45] = 1.5  # a box set down in front of the wall
+
+    def keyframe(saw):
+        # rays at the centre (behind where the box now stands) and at a corner, both on the wall
+        return Keyframe(0, 0.0, np.array([[31, 23], [5, 5]], np.int32), np.zeros((2, 3), np.uint8),
+                        np.array([3.0, 3.0], np.float32), np.zeros(2, np.int32), np.ones(2, bool), np.eye(4),
+                        depth_raw_small=subsample_depth(saw))
+
+    before = keyframe(wall)  # saw the wall through where the box now is: its centre ray is stale
+    assert forget_overtaken([before], boxed, np.eye(4), intr, margin=0.3, step=2) == 1
+    assert before.gone.tolist() == [True, False] and before.usable.tolist() == [False, True]
+    assert forget_overtaken([before], boxed, np.eye(4), intr, margin=0.3, step=2) == 0  # already gone
+    # a keyframe that saw the box there already (it did not arrive), or a wall that did not change
+    assert forget_overtaken([keyframe(boxed)], boxed, np.eye(4), intr, margin=0.3, step=2) == 0
+    assert forget_overtaken([keyframe(wall)], wall, np.eye(4), intr, margin=0.3, step=2) == 0
+    # the box only 0.2 m in front of the wall: within the margin, nothing changes
+    near = wall.copy()
+    near[15:32, 20:45] = 2.8
+    assert forget_overtaken([keyframe(wall)], near, np.eye(4), intr, margin=0.3, step=2) == 0
+    # without the keyframe's raw depth there is nothing to judge
+    bare = keyframe(wall)
+    bare.depth_raw_small = None
+    assert forget_overtaken([bare], boxed, np.eye(4), intr, margin=0.3, step=2) == 0

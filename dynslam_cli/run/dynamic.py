@@ -139,17 +139,21 @@ class DynamicLoop:
         return n
 
     def carve(self, depth: np.ndarray, static_mask: np.ndarray) -> int:
-        """With ``run.carve_margin`` > 0: the earlier keyframes' rays that the newest keyframe sees
-        through on its static pixels are marked gone (the surface they recorded has left: a
-        picked-up box, a person who walked on). Returns the rays newly marked."""
+        """With ``run.carve_margin`` > 0, judged on the newest keyframe's static pixels, the earlier
+        keyframes' rays are marked gone where the scene changed along them: the newest keyframe
+        sees through their surface point (it has left: a picked-up box, a person who walked on),
+        or sees a surface in the free space they crossed (something arrived: the box set down
+        elsewhere). Returns the rays newly marked."""
         kfs = self.slam.keyframes
         if self.carve_margin <= 0 or len(kfs) < 2:
             return 0
-        from dynslam_cli.slam.keyframes import forget_seen_through
+        from dynslam_cli.slam.keyframes import forget_overtaken, forget_seen_through
 
         d = np.where(static_mask, np.asarray(depth, np.float32), 0).astype(np.float32)
         window = max(1, int(round(3 * self.width / 640)))
-        n = forget_seen_through(kfs[:-1], d, kfs[-1].pose_c2w, self.slam.intr, self.carve_margin, window)
+        pose, intr = kfs[-1].pose_c2w, self.slam.intr
+        n = forget_seen_through(kfs[:-1], d, pose, intr, self.carve_margin, window)
+        n += forget_overtaken(kfs[:-1], d, pose, intr, self.carve_margin, max(1, int(round(2 * self.width / 320))))
         self.carved += n
         return n
 

@@ -253,3 +253,61 @@ def forget_seen_through(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr
         kf.gone[hit] = True
         kf.usable &= ~kf.gone
     return newly
+
+
+def forget_overtaken(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr, margin: float,
+                     step: int = 2) -> int:
+    """Mark as ``gone`` the keyframe rays whose free space a surface has since moved into: a camera
+    at ``pose_c2w`` sees (static ``depth``, 0 = none, depth edges left out) a point that the
+    keyframe saw past (its raw depth, the nearest within one stored cell around the point's pixel,
+    lies more than ``margin`` behind it), and the keyframe's ray at that pixel (within ``step``
+    px) ends more than ``margin`` behind the point. That ray's free space is no longer free, so
+    replaying it would carve the newcomer (a box set down) out of the map. Keyframes without
+    ``depth_raw_small`` are skipped. Returns the number of rays newly marked."""
+    import cv2
+
+    d = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+    if not keyframes or margin <= 0:
+        return 0
+    d = np.where(depth_edges(d, 0.05, 2), 0, d)
+    H, W = d.shape
+    vs, us = np.mgrid[0:H:step, 0:W:step]
+    z = d[::step, ::step]
+    ok = z > 0
+    if not ok.any():
+        return 0
+    world = transform(pose_c2w, pixel_dirs(us[ok], vs[ok], intr.fx, intr.fy, intr.cx, intr.cy) * z[ok][:, None])
+    k3 = np.ones((3, 3), np.uint8)
+    hz, wz = (H + step - 1) // step, (W + step - 1) // step
+    newly = 0
+    for kf in keyframes:
+        raw = kf.depth_raw_small
+        if raw is None:
+            continue
+        if kf.gone is None:
+            kf.gone = np.zeros(len(kf), bool)
+        pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
+        idx = np.flatnonzero(inside)
+        if len(idx) == 0:
+            continue
+        seen = cv2.erode(raw.astype(np.float32), k3, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        hs, ws = seen.shape
+        iu = np.clip(np.round(u[idx] / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+        iv = np.clip(np.round(v[idx] / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+        zc = pc[idx, 2]
+        arrived = seen[iv, iu] > zc + margin  # the keyframe saw past where this surface now is
+        if not arrived.any():
+            continue
+        idx, zc = idx[arrived], zc[arrived].astype(np.float32)
+        zbuf = np.full((hz, wz), np.inf, np.float32)
+        np.minimum.at(zbuf, (np.clip(np.round(v[idx]).astype(np.int64) // step, 0, hz - 1),
+                             np.clip(np.round(u[idx]).astype(np.int64) // step, 0, wz - 1)), zc)
+        zbuf = cv2.erode(zbuf, k3, borderType=cv2.BORDER_CONSTANT, borderValue=float(np.inf))
+        cand = np.flatnonzero(~kf.gone)
+        px = kf.pixels[cand]
+        zn = zbuf[np.minimum(px[:, 1] // step, hz - 1), np.minimum(px[:, 0] // step, wz - 1)]
+        hit = cand[zn < kf.depth[cand] - margin]
+        newly += len(hit)
+        kf.gone[hit] = True
+        kf.usable &= ~kf.gone
+    return newly
