@@ -74,7 +74,8 @@ def test_divergence_falls_back_to_the_constant_velocity_pose(fitted):
     assert res.diverged and "jump" in res.reason
     assert np.allclose(res.pose_c2w, np.eye(4)) and slam.events[-1]["frame"] == 1
     slam2 = _load(cfg, state)
-    slam2.model.forward = lambda pts, color=True: (torch.full((len(pts),), float("nan")), torch.zeros(len(pts), 3))
+    slam2.model.query = lambda pts, color=True, grid_extra=None: (
+        torch.full((len(pts),), float("nan")), torch.zeros(len(pts), 3), None)
     res2 = slam2.track(F(1, np.eye(4), INTR))
     assert res2.diverged and "non-finite" in res2.reason and np.all(np.isfinite(res2.pose_c2w))
 
