@@ -59,7 +59,20 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
     assert timing["retracked_frames"] == sum(r["retracked"] for r in recs)
     newly_dynamic = any(lab and not pre for r in recs for lab, pre in zip(r["labels"], r["predicted_before"], strict=True))
     assert timing["retracked_frames"] >= 1 or not newly_dynamic
+    assert isinstance(timing["keyframe_rays_gone"], int) and timing["keyframe_rays_gone"] >= 0
     assert _traj(out / "traj_est.txt").shape == (10, 8)
+
+
+def test_dynamic_run_with_carving_counts_the_rays_it_forgot(walker, tmp_path):
+    from dynslam_cli.config import load_config
+
+    assert load_config().run.carve_margin == 0  # off by default
+    out = tmp_path / "carve"
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out), "-q",
+                                   "--set", "run.carve_margin=0.05"] + TINY)
+    assert res.exit_code == 0, res.output
+    timing = json.loads((out / "timing.json").read_text())
+    assert timing["keyframe_rays_gone"] >= 0 and _traj(out / "traj_est.txt").shape == (10, 8)
 
 
 def test_dynamic_resume_gives_the_same_result(walker, tmp_path):

@@ -43,7 +43,6 @@ class DynamicLoop:
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.carve_margin = float(cfg.run.carve_margin)
-        self.carved = 0  # keyframe rays marked gone by carve
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -153,9 +152,7 @@ class DynamicLoop:
         window = max(1, int(round(3 * self.width / 640)))
         pose, intr = kfs[-1].pose_c2w, self.slam.intr
         n = forget_seen_through(kfs[:-1], d, pose, intr, self.carve_margin, window)
-        n += forget_overtaken(kfs[:-1], d, pose, intr, self.carve_margin, max(1, int(round(2 * self.width / 320))))
-        self.carved += n
-        return n
+        return n + forget_overtaken(kfs[:-1], d, pose, intr, self.carve_margin, max(1, int(round(2 * self.width / 320))))
 
     def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of

@@ -260,8 +260,9 @@ def forget_overtaken(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr, m
     """Mark as ``gone`` the keyframe rays whose free space a surface has since moved into: a camera
     at ``pose_c2w`` sees (static ``depth``, 0 = none, depth edges left out) a point that the
     keyframe saw past (its raw depth, the nearest within one stored cell around the point's pixel,
-    lies more than ``margin`` behind it), and the keyframe's ray at that pixel (within ``step``
-    px) ends more than ``margin`` behind the point. That ray's free space is no longer free, so
+    lies more than ``margin`` behind it), and the keyframe's ray at that pixel (within about
+    ``step`` px: the points are splatted on a ``step`` px grid, then spread by one cell) ends more
+    than ``margin`` behind the point. That ray's free space is no longer free, so
     replaying it would carve the newcomer (a box set down) out of the map. Keyframes without
     ``depth_raw_small`` are skipped. Returns the number of rays newly marked."""
     import cv2
