@@ -202,6 +202,22 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     return ok
 
 
+def _gone(kf) -> np.ndarray:
+    """The keyframe's ``gone`` flags, created (all False) on first use."""
+    if kf.gone is None:
+        kf.gone = np.zeros(len(kf), bool)
+    return kf.gone
+
+
+def _mark_gone(kf, hit) -> int:
+    """Mark rays ``hit`` (bool mask or indices) gone for good and unusable; returns how many were new."""
+    gone = _gone(kf)
+    before = int(gone.sum())
+    gone[hit] = True
+    kf.usable &= ~gone
+    return int(gone.sum()) - before
+
+
 def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     """Mark as ``gone`` (never usable again) the keyframe rays whose surface point lies within
     ``radius`` (m) of any of ``points`` (N, 3; world): geometry a later frame saw has left.
@@ -214,12 +230,7 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     newly = 0
     for kf in keyframes:
         d, _ = tree.query(kf.world_points(intr), distance_upper_bound=radius)
-        hit = np.isfinite(d)
-        if kf.gone is None:
-            kf.gone = np.zeros(len(kf), bool)
-        newly += int((hit & ~kf.gone).sum())
-        kf.gone |= hit
-        kf.usable &= ~kf.gone
+        newly += _mark_gone(kf, np.isfinite(d))
     return newly
 
 
@@ -241,17 +252,12 @@ def forget_seen_through(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr
                      borderValue=0) if window > 0 else d
     newly = 0
     for kf in keyframes:
-        if kf.gone is None:
-            kf.gone = np.zeros(len(kf), bool)
         pc, u, v, inside = _project(kf.world_points(intr), pose_c2w, intr, W, H)
-        idx = np.flatnonzero(inside & ~kf.gone)
+        idx = np.flatnonzero(inside & ~_gone(kf))
         if len(idx) == 0:
             continue
         dn = near[np.round(v[idx]).astype(np.int64), np.round(u[idx]).astype(np.int64)]
-        hit = idx[(dn > 0) & (dn > pc[idx, 2] + margin)]
-        newly += len(hit)
-        kf.gone[hit] = True
-        kf.usable &= ~kf.gone
+        newly += _mark_gone(kf, idx[(dn > 0) & (dn > pc[idx, 2] + margin)])
     return newly
 
 
@@ -285,8 +291,6 @@ def forget_overtaken(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr, m
         raw = kf.depth_raw_small
         if raw is None:
             continue
-        if kf.gone is None:
-            kf.gone = np.zeros(len(kf), bool)
         pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
         idx = np.flatnonzero(inside)
         if len(idx) == 0:
@@ -304,11 +308,8 @@ def forget_overtaken(keyframes, depth: np.ndarray, pose_c2w: np.ndarray, intr, m
         np.minimum.at(zbuf, (np.clip(np.round(v[idx]).astype(np.int64) // step, 0, hz - 1),
                              np.clip(np.round(u[idx]).astype(np.int64) // step, 0, wz - 1)), zc)
         zbuf = cv2.erode(zbuf, k3, borderType=cv2.BORDER_CONSTANT, borderValue=float(np.inf))
-        cand = np.flatnonzero(~kf.gone)
+        cand = np.flatnonzero(~_gone(kf))
         px = kf.pixels[cand]
         zn = zbuf[np.minimum(px[:, 1] // step, hz - 1), np.minimum(px[:, 0] // step, wz - 1)]
-        hit = cand[zn < kf.depth[cand] - margin]
-        newly += len(hit)
-        kf.gone[hit] = True
-        kf.usable &= ~kf.gone
+        newly += _mark_gone(kf, cand[zn < kf.depth[cand] - margin])
     return newly
