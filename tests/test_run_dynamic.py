@@ -200,8 +200,9 @@ def test_stationary_labels_only_with_centre_feature_or_when_asked():
     ids = np.ones((48, 64), np.int32)
     kfs = [SimpleNamespace(frame_id=i, pose_c2w=np.eye(4), depth_raw_small=subsample_depth(depth)) for i in (2, 4)]
 
-    def loop(centre, anyway, tol=0.0):
+    def loop(centre, anyway, tol=0.0, tol_centre=0.0):
         return SimpleNamespace(still_frames=10, still_without_centre=anyway, still_tolerance=tol,
+                               still_tolerance_centre=tol_centre,
                                mm=SimpleNamespace(m=SimpleNamespace(centre_feature=centre, depth_threshold=0.3)),
                                slam=SimpleNamespace(n_frames=6, keyframes=kfs, intr=intr))
 
@@ -214,6 +215,9 @@ def test_stationary_labels_only_with_centre_feature_or_when_asked():
     assert DynamicLoop.stationary(loop(False, True), closer, ids, np.eye(4)).tolist() == [True]
     assert DynamicLoop.stationary(loop(False, True, 0.05), closer, ids, np.eye(4)).tolist() == [False]
     assert DynamicLoop.stationary(loop(False, True, 0.15), closer, ids, np.eye(4)).tolist() == [True]
+    # with the centre feature run.still_tolerance_centre applies instead (0 = t_d)
+    assert DynamicLoop.stationary(loop(True, True, 0.05), closer, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(True, True, 0.3, 0.05), closer, ids, np.eye(4)).tolist() == [False]
 
 
 def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():

@@ -38,9 +38,11 @@ class RunConfig:
                                      "instance that stayed put is labelled static, which the classifier then learns "
                                      "for its appearance everywhere): breaks the loop where a surface once labelled "
                                      "dynamic is never mapped, so always looks 'in front of the map'.")
-    still_tolerance: float = opt(0.0, "Dynamic mode: how close (m) an instance's points must lie to the depth the "
-                                 "keyframes saw for run.still_frames to count it as stayed put; 0 = "
-                                 "motion.depth_threshold.")
+    still_tolerance: float = opt(0.0, "Dynamic mode without motion.centre_feature (run.still_without_centre): how close "
+                                 "(m) an instance's points must lie to the depth the keyframes saw for "
+                                 "run.still_frames to count it as stayed put; 0 = motion.depth_threshold.")
+    still_tolerance_centre: float = opt(0.0, "The same with motion.centre_feature, where 'static' is learnt at the "
+                                        "instance's place only; 0 = motion.depth_threshold.")
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
                                "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "

@@ -40,6 +40,7 @@ class DynamicLoop:
         self.still_frames = int(cfg.run.still_frames)
         self.still_without_centre = bool(cfg.run.still_without_centre)
         self.still_tolerance = float(cfg.run.still_tolerance)
+        self.still_tolerance_centre = float(cfg.run.still_tolerance_centre)
         self.forget_radius = float(cfg.run.forget_radius)
         self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.carve_margin = float(cfg.run.carve_margin)
@@ -99,14 +100,17 @@ class DynamicLoop:
         """Instances that stayed put over the last ``run.still_frames`` frames (see
         :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None unless the centre feature is
         on (without it, 'static' would be learnt for the object everywhere, not at its place) or
-        ``run.still_without_centre`` asks for it anyway."""
+        ``run.still_without_centre`` asks for it anyway.  Within ``run.still_tolerance_centre`` of
+        what the keyframes saw with the centre feature, ``run.still_tolerance`` without it."""
         if self.still_frames <= 0 or not (self.mm.m.centre_feature or self.still_without_centre):
             return None
         from dynslam_cli.slam.keyframes import stationary_instances
 
         now = self.slam.n_frames - 1
         window = [kf for kf in self.slam.keyframes if now - self.still_frames <= kf.frame_id < now]
-        tol = self.still_tolerance if self.still_tolerance > 0 else self.mm.m.depth_threshold
+        # with the centre feature 'static' is learnt at this place only, a looser test costs less
+        tol = self.still_tolerance_centre if self.mm.m.centre_feature else self.still_tolerance
+        tol = tol if tol > 0 else self.mm.m.depth_threshold
         return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, tol)
 
     def forget_departed(self, res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray) -> int:
