@@ -265,6 +265,12 @@ def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_ini
     assert [f for f, _ in back._feat_refs] == [0]
     assert np.array_equal(back._feat_refs[0][1].des, state["feat_refs"][0]["des"])
     assert np.allclose(back.process(TF(2)).pose_c2w, r2.pose_c2w)
+    # a feature step farther than tracking.max_jump from constant velocity is not used, and logged
+    cfg.tracking.max_jump = 0.01
+    tight = SLAM(cfg, intr, torch.device("cpu"))
+    tight.process(TF(0))
+    assert np.allclose(tight.process(TF(1)).pose_c2w, np.eye(4))
+    assert [e["kind"] for e in tight.events] == ["guess_rejected"] and tight.events[0]["frame"] == 1
 
 
 def test_iters_dynamic_replaces_the_tracking_iterations_in_dynamic_mode(fitted):

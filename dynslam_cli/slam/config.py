@@ -17,7 +17,8 @@ class TrackingConfig:
     lr: float = opt(0.01, "Adam learning rate of the 6-DoF pose increment.")
     ignore_border: int = opt(20, "Pixels ignored at the image border when sampling rays.")
     const_velocity: bool = opt(True, "Initialise each pose with the constant-velocity model.")
-    max_jump: float = opt(0.3, "A tracked pose moving more than this (m) from its initial guess is divergence.")
+    max_jump: float = opt(0.3, "A tracked pose moving more than this (m) from its initial guess is divergence; a feature "
+                          "or ICP initial guess farther than this from the constant-velocity one is not used.")
     keep_best: bool = opt(True, "Return the lowest-loss pose seen (else the last iterate; Co-SLAM's TUM config uses the last).")
     resample_rays: bool = opt(True, "Draw new rays every iteration (Co-SLAM); false = one ray set per frame, so losses compare.")
     min_pixels: int = opt(50, "Fewer usable pixels than this: tracking is skipped (constant-velocity pose, logged).")

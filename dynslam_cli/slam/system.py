@@ -180,16 +180,29 @@ class SLAM:
             self.last_pnp = res
             if res.ok:
                 cand = inv_np(p1) @ res.T
-                if float(np.linalg.norm(cand[:3, 3] - rel[:3, 3])) <= tc.max_jump:
+                if self._plausible(cand, rel, "feature", cur.idx):
                     return orthonormalize(p1 @ cand)  # ICP only where the features fail
         if tc.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
                             init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
                             max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction, max_points=tc.icp_max_points)
             self.last_icp = res
-            if res.ok and float(np.linalg.norm(res.T[:3, 3] - rel[:3, 3])) <= tc.max_jump:
+            if res.ok and self._plausible(res.T, rel, "ICP", cur.idx):
                 rel = res.T
         return orthonormalize(p1 @ rel)
+
+    def _plausible(self, cand: np.ndarray, rel: np.ndarray, source: str, idx: int) -> bool:
+        """Whether an initial-guess step ``cand`` (previous camera <- current) lies within
+        ``tracking.max_jump`` of the constant-velocity step ``rel``; a rejected one is logged as a
+        ``guess_rejected`` event (tracking_events.json)."""
+        off = float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
+        if off <= self.cfg.tracking.max_jump:
+            return True
+        self.events.append({"frame": int(idx), "kind": "guess_rejected",
+                            "detail": f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
+                                      f"{self.cfg.tracking.max_jump}"})
+        log.info("frame %d: %s", idx, self.events[-1]["detail"])
+        return False
 
     def _feature_odometry(self) -> FeatureOdometry:
         if self._odometry is None:
