@@ -109,7 +109,7 @@ def test_smoothness_from_the_ray_query_matches_the_separate_grid_call():
             smooth = smoothness_loss(m, box, cfg, g)
         loss = out["depth"].square().mean() + 1e3 * smooth
         loss.backward()
-        losses.append(float(smooth))
+        losses.append(float(smooth.detach()))
         grads.append(m.grid.embeddings.grad.clone())
     assert losses[0] > 0 and abs(losses[0] - losses[1]) <= 1e-6 * losses[0]
     assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-9)
