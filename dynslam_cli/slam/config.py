@@ -42,6 +42,9 @@ class TrackingConfig:
     feature_ratio: float = opt(0.8, "Feature init: Lowe's ratio test of the two nearest descriptors.")
     feature_ransac_px: float = opt(2.0, "Feature init: RANSAC inlier reprojection error in pixels (at 640 px width).")
     feature_min_inliers: int = opt(20, "Feature init: fewer PnP inliers than this and the guess is not used.")
+    feature_min_inlier_ratio: float = opt(0.0, "Feature init: fewer PnP inliers than this fraction of the previous "
+                                          "frame's and the guess is not used (ICP then; the next frame compares with "
+                                          "this one's count); 0 = off.")
     feature_keep_ref: float = opt(0.15, "Feature init: frames are matched to one reference frame while they share at "
                                   "least this fraction of its keypoints with depth as inliers; below it the frame "
                                   "just tracked becomes the reference (fewer, longer baselines drift less than "

@@ -114,6 +114,7 @@ class SLAM:
         self._undo: Optional[tuple] = None  # (ICP reference, feature reference) before the last track(), for retrack()
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
         self.last_pnp = None  # PnPResult of the last tracked frame's feature init (diagnostics)
+        self._pnp_inliers: dict[int, int] = {}  # frame id -> PnP inliers of its feature init (last two frames)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -178,7 +179,17 @@ class SLAM:
             refs = [(self._pose_of(fid), fs) for fid, fs in self._feat_refs]
             res = self._feature_odometry().estimate_multi(refs, cur.extra["features"])
             self.last_pnp = res
-            if res.ok:
+            prev = self._pnp_inliers.get(cur.idx - 1)
+            self._pnp_inliers = {k: v for k, v in self._pnp_inliers.items() if k == cur.idx - 1}
+            self._pnp_inliers[cur.idx] = int(res.inliers) if res.ok else 0
+            dropped = res.ok and prev is not None and res.inliers < tc.feature_min_inlier_ratio * prev
+            if dropped:
+                self.events.append({"frame": int(cur.idx), "kind": "guess_rejected",
+                                    "detail": f"feature guess from {res.inliers} PnP inliers, fewer than "
+                                              f"tracking.feature_min_inlier_ratio {tc.feature_min_inlier_ratio} "
+                                              f"of the previous frame's {prev}"})
+                log.info("frame %d: %s", cur.idx, self.events[-1]["detail"])
+            if res.ok and not dropped:
                 cand = inv_np(p1) @ res.T
                 if self._plausible(cand, rel, "feature", cur.idx):
                     return orthonormalize(p1 @ cand)  # ICP only where the features fail
@@ -650,6 +661,7 @@ class SLAM:
             "tgen": self.tgen.get_state().cpu(),
             "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
             "feat_refs": [{"frame": fid, **fs.to_dict()} for fid, fs in self._feat_refs],
+            "pnp_inliers": dict(self._pnp_inliers),
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -673,3 +685,4 @@ class SLAM:
         old = d.get("feat_ref")  # checkpoints written before tracking.feature_refs held one reference
         refs = d.get("feat_refs", [] if old is None else [old])
         self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in refs]
+        self._pnp_inliers = {int(k): int(v) for k, v in d.get("pnp_inliers", {}).items()}
