@@ -271,6 +271,28 @@ def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_ini
     tight.process(TF(0))
     assert np.allclose(tight.process(TF(1)).pose_c2w, np.eye(4))
     assert [e["kind"] for e in tight.events] == ["guess_rejected"] and tight.events[0]["frame"] == 1
+    # tracking.feature_min_inlier_ratio: a guess from far fewer inliers than the previous frame's is not used
+    from dynslam_cli.geometry.features import PnPResult
+
+    class Odometry:  # PnP 'finds' the true pose, from 400 inliers on frame 1 and from 100 on frame 2
+        def __init__(self, real):
+            self.calls, self.detect = 0, real.detect
+
+        def estimate_multi(self, refs, feats):
+            self.calls += 1
+            return PnPResult(poses[self.calls], 500, 400 if self.calls == 1 else 100, True, (1,))
+
+    cfg.tracking.max_jump = 0.3
+    for ratio, kinds in ((0.0, []), (0.5, ["guess_rejected"])):
+        cfg.tracking.feature_min_inlier_ratio = ratio
+        s = SLAM(cfg, intr, torch.device("cpu"))
+        s.process(TF(0))
+        s._odometry = Odometry(s._feature_odometry())
+        assert np.allclose(s.process(TF(1)).pose_c2w, poses[1])
+        r = s.process(TF(2))
+        assert np.allclose(r.pose_c2w, poses[2]) == (ratio == 0.0)  # else constant velocity from frame 1
+        assert [e["kind"] for e in s.events] == kinds
+        assert s.state_dict()["pnp_inliers"] == {1: 400, 2: 100}
 
 
 def test_iters_dynamic_replaces_the_tracking_iterations_in_dynamic_mode(fitted):
