@@ -184,11 +184,9 @@ class SLAM:
             self._pnp_inliers[cur.idx] = int(res.inliers) if res.ok else 0
             dropped = res.ok and prev is not None and res.inliers < tc.feature_min_inlier_ratio * prev
             if dropped:
-                self.events.append({"frame": int(cur.idx), "kind": "guess_rejected",
-                                    "detail": f"feature guess from {res.inliers} PnP inliers, fewer than "
+                self._guess_rejected(cur.idx, f"feature guess from {res.inliers} PnP inliers, fewer than "
                                               f"tracking.feature_min_inlier_ratio {tc.feature_min_inlier_ratio} "
-                                              f"of the previous frame's {prev}"})
-                log.info("frame %d: %s", cur.idx, self.events[-1]["detail"])
+                                              f"of the previous frame's {prev}")
             if res.ok and not dropped:
                 cand = inv_np(p1) @ res.T
                 if self._plausible(cand, rel, "feature", cur.idx):
@@ -209,11 +207,14 @@ class SLAM:
         off = float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
         if off <= self.cfg.tracking.max_jump:
             return True
-        self.events.append({"frame": int(idx), "kind": "guess_rejected",
-                            "detail": f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
-                                      f"{self.cfg.tracking.max_jump}"})
-        log.info("frame %d: %s", idx, self.events[-1]["detail"])
+        self._guess_rejected(idx, f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
+                                  f"{self.cfg.tracking.max_jump}")
         return False
+
+    def _guess_rejected(self, idx: int, detail: str) -> None:
+        """Log an initial guess that was not used (a ``guess_rejected`` event, tracking_events.json)."""
+        self.events.append({"frame": int(idx), "kind": "guess_rejected", "detail": detail})
+        log.info("frame %d: %s", idx, detail)
 
     def _feature_odometry(self) -> FeatureOdometry:
         if self._odometry is None:
