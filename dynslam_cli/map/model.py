@@ -86,7 +86,7 @@ class NeuralMap(torch.nn.Module):
         if grid_extra is None:
             feats, extra = self.grid(x), None
         else:
-            both = self.grid(torch.cat([x, self.normalize(grid_extra).clamp(0, 1)]))
+            both = self.grid(torch.cat([x, self._grid_coords(grid_extra)]))
             feats, extra = both[:n], both[n:]
         # first layers as split matmuls (no concatenated copies): W [grid | blob] = W_g grid + W_b blob
         l0, l1 = self.sdf_net.layers
@@ -101,8 +101,12 @@ class NeuralMap(torch.nn.Module):
         rgb = torch.sigmoid(F.linear(F.relu(hc), c1.weight, c1.bias))
         return sdf, rgb, extra
 
+    def _grid_coords(self, pts: torch.Tensor) -> torch.Tensor:
+        """World points -> hash grid coordinates, clamped to the map's box."""
+        return self.normalize(pts).clamp(0, 1)
+
     def grid_features(self, pts: torch.Tensor) -> torch.Tensor:
-        return self.grid(self.normalize(pts).clamp(0, 1))
+        return self.grid(self._grid_coords(pts))
 
     def map_parameters(self):
         return list(self.parameters())

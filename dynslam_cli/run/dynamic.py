@@ -42,7 +42,6 @@ class DynamicLoop:
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.still_tolerance_centre = float(cfg.run.still_tolerance_centre)
         self.forget_radius = float(cfg.run.forget_radius)
-        self.forgotten = 0  # keyframe rays marked gone by forget_departed
         self.carve_margin = float(cfg.run.carve_margin)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
@@ -137,9 +136,7 @@ class DynamicLoop:
         fx, fy, cx, cy = intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5
         vs, us = np.nonzero(left)
         pw = transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
-        n = forget_near(self.slam.keyframes, pw, intr, self.forget_radius)
-        self.forgotten += n
-        return n
+        return forget_near(self.slam.keyframes, pw, intr, self.forget_radius)
 
     def carve(self, depth: np.ndarray, static_mask: np.ndarray) -> int:
         """With ``run.carve_margin`` > 0, judged on the newest keyframe's static pixels, the earlier
