@@ -303,3 +303,54 @@ def test_iters_dynamic_replaces_the_tracking_iterations_in_dynamic_mode(fitted):
         slam = _load(c, state)
         assert slam.tracking_iters == want
         assert slam.track(F(1, true, INTR)).iters == want
+
+
+@pytest.mark.parametrize("mode,refs_dyn,lr_dyn,refs,lr", [("static", 8, 0.0, 1, 0.001), ("dynamic", 8, 0.0, 8, 0.0),
+                                                          ("dynamic", -1, -1.0, 1, 0.001)])
+def test_feature_refs_and_pose_learning_rate_have_dynamic_mode_values(fitted, monkeypatch, mode, refs_dyn, lr_dyn,
+                                                                      refs, lr):
+    cfg, state = fitted
+    c = tiny_config(**{"run.mode": mode, "tracking.feature_refs_dynamic": refs_dyn,
+                       "mapping.lr_pose_dynamic": lr_dyn, "mapping.lr_pose": 0.001})
+    slam = _load(c, state)
+    assert (slam.feature_refs, slam.lr_pose) == (refs, lr)
+    seen = []
+    real_adam = torch.optim.Adam
+    monkeypatch.setattr(torch.optim, "Adam", lambda params, lr, **kw: seen.append(lr) or real_adam(params, lr=lr, **kw))
+    slam.track(F(1, se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0]), INTR))
+    slam.map(F(1, se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0]), INTR))  # not due: nothing optimised
+    slam._optimize(slam._cur, 2, 64, first=False)
+    assert (lr in seen) == (lr > 0)  # the pose optimiser runs with lr_pose, or not at all
+
+
+def test_map_residual_is_lowest_at_the_true_pose_and_verification_rejects_a_wrong_feature_step():
+    from dynslam_cli.geometry.features import PnPResult
+
+    torch.manual_seed(0)
+    cfg = tiny_config(**{"tracking.iters": 0, "tracking.icp_init": False, "tracking.feature_init": True})
+    first = SLAM(cfg, INTR, torch.device("cpu"))
+    first.process(F(0, np.eye(4), INTR))
+    state = first.state_dict()
+    true = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])
+    probe = _load(cfg, state)
+    cur = probe._prepare(F(1, true, INTR), None)  # (a step along one axis of the box moves few walls' depth)
+    at_true = probe.map_residual(cur, true)
+    assert at_true < 0.02 and at_true == probe.map_residual(cur, true)  # same rays every call
+    far = se3_exp_np([0.1, 0.08, 0.1, 0.0, 0.0, 0.0])  # a feature step 16 cm from constant velocity
+    assert probe.map_residual(cur, far) > 5 * at_true
+
+    class Odometry:
+        def __init__(self, real, pose):
+            self.detect, self.pose = real.detect, pose
+
+        def estimate_multi(self, refs, feats):
+            return PnPResult(self.pose, 500, 400, True, (400,))
+
+    for verify, frame_pose, kept in ((0.0, true, True), (0.1, true, False), (0.1, far, True)):
+        cfg.tracking.feature_verify = verify
+        s = _load(cfg, state)
+        s._odometry = Odometry(s._feature_odometry(), far)
+        r = s.track(F(1, frame_pose, INTR))
+        # kept: PnP's pose; rejected: constant velocity from one pose, the identity
+        assert np.allclose(r.pose_c2w, far if kept else np.eye(4))
+        assert [e["kind"] for e in s.events] == ([] if kept else ["guess_rejected"])

@@ -47,6 +47,9 @@ class TrackingConfig:
                                           "this one's count); 0 = off. Bonn crowd clip, geometric, 8 references: 0.5 "
                                           "gave 4.59 / 2.69 / 2.89 cm at seeds 0-2 against 3.01 / 54.3 (lost at "
                                           "frame 82) / 2.65 off; yolo-person.yaml 3.32 against 2.61.")
+    feature_verify: float = opt(0.0, "Feature init: a PnP step farther than this (m) from the constant-velocity step "
+                                "is used only if it fits the map at least as well (median SDF residual of the "
+                                "frame's static rays at both poses); 0 = off.")
     feature_keep_ref: float = opt(0.15, "Feature init: frames are matched to one reference frame while they share at "
                                   "least this fraction of its keypoints with depth as inliers; below it the frame "
                                   "just tracked becomes the reference (fewer, longer baselines drift less than "
@@ -56,6 +59,9 @@ class TrackingConfig:
                             "Bonn crowd clip with person masks: 1.9-3.1 cm ATE with 5-10 references against 2.6-6.9 "
                             "with one, across reference-switch thresholds; but with dense tracking on top (static "
                             "mode, frames 0-39) 8 references scored 2.43 / 2.41 cm against 1.54 / 1.85 with one.")
+    feature_refs_dynamic: int = opt(-1, "Feature init: tracking.feature_refs in dynamic mode; -1 = feature_refs. "
+                                    "bonn.yaml sets 8: dynamic mode there keeps the feature pose (iters_dynamic 0), and "
+                                    "the local map of 8 references gave 2.61 cm with yolo-seg against 3.89 with one.")
     edge_margin: int = opt(2, "Do not sample tracking rays within this many pixels of a depth discontinuity (a step "
                            "of >5 % at 540 px focal length, or a hole): the map blurs edges, and on real depth they "
                            "bias the pose; 0 = sample them.")
@@ -70,6 +76,9 @@ class MappingConfig:
     n_rays: int = opt(2048, "Rays per bundle adjustment iteration (|H_b|).")
     lr_map: float = opt(0.01, "Learning rate of the grid and decoders.")
     lr_pose: float = opt(0.001, "Learning rate of keyframe poses.")
+    lr_pose_dynamic: float = opt(-1.0, "mapping.lr_pose in dynamic mode; -1 = lr_pose.  bonn.yaml sets 0 (bundle "
+                                 "adjustment refines the map only): moving the poses against the nearly degenerate "
+                                 "static map of the crowd clip added 1-1.5 cm ATE.")
     first_iters: int = opt(1000, "Mapping iterations on the first frame.")
     first_rays: int = opt(2048, "Rays per mapping iteration on the first frame.")
     edge_margin: int = opt(2, "Keyframe and current-frame mapping rays avoid pixels within this many pixels of a depth "

@@ -121,13 +121,26 @@ class SLAM:
     def n_frames(self) -> int:
         return len(self.poses)
 
+    def _in_mode(self, value, dynamic_value):
+        """``dynamic_value`` in dynamic mode when it is set (>= 0), else ``value`` (the *_dynamic keys)."""
+        if getattr(self.cfg.run, "mode", "") == "dynamic" and dynamic_value >= 0:
+            return dynamic_value
+        return value
+
     @property
     def tracking_iters(self) -> int:
         """tracking.iters, or tracking.iters_dynamic in dynamic mode when that is set."""
-        tc = self.cfg.tracking
-        if getattr(self.cfg.run, "mode", "") == "dynamic" and tc.iters_dynamic >= 0:
-            return int(tc.iters_dynamic)
-        return int(tc.iters)
+        return int(self._in_mode(self.cfg.tracking.iters, self.cfg.tracking.iters_dynamic))
+
+    @property
+    def feature_refs(self) -> int:
+        """tracking.feature_refs, or tracking.feature_refs_dynamic in dynamic mode when that is set."""
+        return max(1, int(self._in_mode(self.cfg.tracking.feature_refs, self.cfg.tracking.feature_refs_dynamic)))
+
+    @property
+    def lr_pose(self) -> float:
+        """mapping.lr_pose, or mapping.lr_pose_dynamic in dynamic mode when that is set."""
+        return float(self._in_mode(self.cfg.mapping.lr_pose, self.cfg.mapping.lr_pose_dynamic))
 
     def _t(self, a, dtype=torch.float32) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a), dtype=dtype).to(self.device)
@@ -189,7 +202,7 @@ class SLAM:
                                               f"of the previous frame's {prev}")
             if res.ok and not dropped:
                 cand = inv_np(p1) @ res.T
-                if self._plausible(cand, rel, "feature", cur.idx):
+                if self._plausible(cand, rel, "feature", cur.idx) and self._verified(cur, cand, rel):
                     return orthonormalize(p1 @ cand)  # ICP only where the features fail
         if tc.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
@@ -210,6 +223,42 @@ class SLAM:
         self._guess_rejected(idx, f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
                                   f"{self.cfg.tracking.max_jump}")
         return False
+
+    def _verified(self, cur: _Current, cand: np.ndarray, rel: np.ndarray) -> bool:
+        """Whether a feature step ``cand`` farther than ``tracking.feature_verify`` (m) from the
+        constant-velocity step ``rel`` fits the map at least as well as that step does (median
+        SDF residual of the same static rays); a step that fits worse is rejected (logged)."""
+        tc = self.cfg.tracking
+        off = float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
+        if tc.feature_verify <= 0 or off <= tc.feature_verify or self.model is None:
+            return True
+        p1 = self.poses[-1]
+        r_feat = self.map_residual(cur, p1 @ cand)
+        r_cv = self.map_residual(cur, p1 @ rel)
+        if not r_cv < r_feat:
+            return True
+        self._guess_rejected(cur.idx, f"feature step {off:.3f} m from constant velocity fits the map worse "
+                                      f"(median SDF residual {r_feat * 100:.2f} cm against {r_cv * 100:.2f} cm)")
+        return False
+
+    @torch.no_grad()
+    def map_residual(self, cur: _Current, pose_c2w: np.ndarray, n_rays: int = 0) -> float:
+        """Median over rays of the map's mean absolute SDF residual (m) inside the truncation band,
+        with the current frame's static pixels placed at ``pose_c2w``; the same rays for every pose
+        of a frame (drawn from the frame index, not from the run's random stream)."""
+        n = int(n_rays or self.cfg.tracking.n_rays)
+        valid = self._without_edges(cur, cur.valid, self.cfg.tracking.edge_margin)
+        if len(valid) == 0:
+            return float("inf")
+        idx = torch.from_numpy(valid[np.random.default_rng(cur.idx).integers(0, len(valid), size=n)]).to(self.device)
+        d_t = cur.depth[idx]
+        z = sample_depths(d_t, self.cfg.map, perturb=False)
+        T = self._t(pose_c2w)
+        out = render_rays(self.model, T[:3, 3].unsqueeze(0), self.dirs[idx] @ T[:3, :3].T, z, color=False)
+        tr = self.cfg.map.truncation
+        band = ((z - d_t[:, None]).abs() <= tr) & (d_t[:, None] > 0)
+        err = ((z + out["sdf"] * tr - d_t[:, None]).abs() * band).sum(1) / band.sum(1).clamp_min(1)
+        return float(err[band.any(1)].median()) if bool(band.any()) else float("inf")
 
     def _guess_rejected(self, idx: int, detail: str) -> None:
         """Log an initial guess that was not used (a ``guess_rejected`` event, tracking_events.json)."""
@@ -242,7 +291,7 @@ class SLAM:
     def _update_feature_ref(self, cur: _Current) -> None:
         """The frame just tracked becomes a feature reference when there is none, when its feature
         init failed, or when it shared too few inliers with the newest reference; the oldest
-        beyond tracking.feature_refs are dropped."""
+        beyond tracking.feature_refs (feature_refs_dynamic) are dropped."""
         fs = cur.extra.get("features")
         if fs is None:
             self._feat_refs = []
@@ -253,7 +302,7 @@ class SLAM:
             n_ref = int((self._feat_refs[-1][1].depth > 0).sum())
             if res.ref_inliers[-1] >= tc.feature_keep_ref * n_ref:
                 return
-        self._feat_refs = (self._feat_refs + [(cur.idx, fs)])[-max(1, tc.feature_refs):]
+        self._feat_refs = (self._feat_refs + [(cur.idx, fs)])[-self.feature_refs:]
 
     def _edges(self, cur: _Current, margin: int) -> np.ndarray:
         """Depth-edge pixels of the current frame within ``margin`` px (cached per margin).
@@ -491,9 +540,9 @@ class SLAM:
                 opt_mask[0] = 0
             if not mc.optimize_current:
                 opt_mask[-1] = 0
-        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and mc.lr_pose > 0
+        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and self.lr_pose > 0
         xi = torch.zeros(n_p, 6, device=self.device, requires_grad=optimise_poses)
-        pose_opt = torch.optim.Adam([xi], lr=mc.lr_pose) if optimise_poses else None
+        pose_opt = torch.optim.Adam([xi], lr=self.lr_pose) if optimise_poses else None
         S = mp.samples_free + mp.samples_surface
         # sample all iterations' rays up front
         cur_idx = torch.from_numpy(cur_idx_np).to(self.device) if n_cur else None
