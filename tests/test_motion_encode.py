@@ -85,6 +85,26 @@ def test_effnet_torch_and_onnx_agree_and_embed(effnet):
     assert float(e1[0] @ e1[1]) < 0.95
 
 
+def test_effnet_runs_at_a_smaller_input_size(shared_dir, tmp_path, monkeypatch):
+    from dynslam_cli.config import Config
+    from dynslam_cli.motion.encode_base import make_encoder
+
+    monkeypatch.setenv("DYNSLAM_CACHE", str(tmp_path))
+    cfg = Config()
+    cfg.motion.encoder_input_size = 160
+    cfg.motion.threads = 1
+    small = make_encoder(cfg.motion)
+    assert small.input_size == 160
+    assert (tmp_path / "effnet-lite0-160-v1.onnx").is_file() and small.backend == "onnxruntime"
+    top = small.classify(_read(shared_dir / "images" / "bus.jpg"))
+    assert top[0][0] in BUS_LIKE
+    rgb, ids = _two_instances(120, 160)
+    e = small.encode(rgb, ids)
+    assert e.shape == (2, 1280) and np.allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-5)
+    with pytest.raises(DynslamError, match="encoder_input_size"):
+        type(small)(input_size=16)
+
+
 def test_effnet_embedding_separates_people_from_bus(effnet, yolo_model, shared_dir):
     from dynslam_cli.motion.segment_yolo import YoloSegSegmenter
 

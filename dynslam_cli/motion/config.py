@@ -29,7 +29,8 @@ class MotionConfig:
     # --- encoding
     encoder: str = opt("effnet-lite0", "Instance encoder: effnet-lite0, onnx, clip, dino, blip, color-hist.")
     encoder_model: str = opt("", "ONNX file of the encoder (for onnx/clip/dino/blip).")
-    encoder_input_size: int = opt(0, "Encoder input side in pixels; 0 = the preset's (224; blip 224 or 364 read from the model).")
+    encoder_input_size: int = opt(0, "Encoder input side in pixels (effnet-lite0 too: its ONNX export is cached per "
+                                  "size); 0 = the preset's (224; blip 224 or 364 read from the model).")
     encoder_mean: list = opt([], "Per-channel mean on the 0-1 scale; empty = the preset's (onnx: ImageNet).")
     encoder_std: list = opt([], "Per-channel std on the 0-1 scale; empty = the preset's (onnx: ImageNet).")
     encoder_output: str = opt("", "Output name or index of the ONNX encoder; empty = the preset's (first output).")

@@ -148,8 +148,10 @@ class EffNetLite0Encoder:
     dim = 1280
 
     def __init__(self, backend: str = "auto", margin: float = 0.1, background: str = "grey", batch: int = 32,
-                 threads: int = 0, cache: Optional[Path] = None):
-        self.margin, self.batch = margin, max(1, int(batch))
+                 threads: int = 0, cache: Optional[Path] = None, input_size: int = INPUT):
+        if int(input_size) < 32:
+            raise DynslamError(f"motion.encoder_input_size must be at least 32 for effnet-lite0, got {input_size}")
+        self.margin, self.batch, self.input_size = margin, max(1, int(batch)), int(input_size)
         self.fill = crop_fill(MEAN, background)
         self.session = None
         self.model = None
@@ -158,9 +160,9 @@ class EffNetLite0Encoder:
             try:
                 from dynslam_cli.motion.onnx_utils import cache_dir, ort_session
 
-                onnx_path = Path(cache or cache_dir()) / f"effnet-lite0-{INPUT}-v1.onnx"  # bump v when the network changes
+                onnx_path = Path(cache or cache_dir()) / f"effnet-lite0-{self.input_size}-v1.onnx"  # bump v when the network changes
                 if not onnx_path.is_file():
-                    export_onnx(onnx_path)
+                    export_onnx(onnx_path, self.input_size)
                 self.session = ort_session(onnx_path, threads)
                 self.backend = "onnxruntime"
             except Exception:  # noqa: BLE001 - export/ORT failure falls back to torch
@@ -168,12 +170,12 @@ class EffNetLite0Encoder:
                     raise
                 self.session = None
         if self.session is None:
-            self.model = build_model()
+            self.model = build_model(self.input_size)
 
     @classmethod
     def from_config(cls, mcfg) -> "EffNetLite0Encoder":
         return cls(margin=mcfg.crop_margin, background=mcfg.crop_background, batch=mcfg.encoder_batch,
-                   threads=mcfg.threads)
+                   threads=mcfg.threads, input_size=mcfg.encoder_input_size or INPUT)
 
     def _run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         feats, logits = [], []
@@ -192,17 +194,17 @@ class EffNetLite0Encoder:
         return np.concatenate(feats), np.concatenate(logits)
 
     def encode(self, rgb: np.ndarray, ids_or_masks: np.ndarray) -> np.ndarray:
-        crops = masked_crops(rgb, ids_or_masks, INPUT, self.margin, self.fill)
+        crops = masked_crops(rgb, ids_or_masks, self.input_size, self.margin, self.fill)
         if len(crops) == 0:
             return np.zeros((0, self.dim), np.float32)
         f, _ = self._run(normalise_batch(crops, MEAN, STD))
         return l2n(f)
 
     def classify(self, rgb: np.ndarray, topk: int = 5) -> list[tuple[int, float]]:
-        """ImageNet top-k (class index, probability) of a whole image (resized to 224×224)."""
+        """ImageNet top-k (class index, probability) of a whole image (resized to the input size)."""
         import cv2
 
-        img = cv2.resize(rgb, (INPUT, INPUT), interpolation=cv2.INTER_AREA)
+        img = cv2.resize(rgb, (self.input_size, self.input_size), interpolation=cv2.INTER_AREA)
         _, lg = self._run(normalise_batch(img[None], MEAN, STD))
         p = np.exp(lg[0] - lg[0].max())
         p /= p.sum()
