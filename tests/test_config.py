@@ -97,5 +97,6 @@ def test_yolo_person_overlay_loads_over_bonn():
     root = Path(__file__).resolve().parents[1] / "configs"
     cfg = load_config("bonn", "crowd", config_file=root / "yolo-person.yaml")
     assert cfg.motion.segmenter == "yolo-seg" and cfg.motion.prior_classes == ["person"]
-    assert cfg.tracking.feature_refs == 8 and cfg.mapping.lr_pose == 0.0
-    assert cfg.tracking.feature_init and cfg.data.max_depth == 3.0  # bonn.yaml beneath it
+    # bonn.yaml beneath it, with its dynamic-mode local map and map-only bundle adjustment
+    assert cfg.tracking.feature_init and cfg.data.max_depth == 3.0 and cfg.tracking.feature_verify == 0.1
+    assert cfg.tracking.feature_refs_dynamic == 8 and cfg.mapping.lr_pose_dynamic == 0.0
