@@ -160,7 +160,8 @@ class EffNetLite0Encoder:
             try:
                 from dynslam_cli.motion.onnx_utils import cache_dir, ort_session
 
-                onnx_path = Path(cache or cache_dir()) / f"effnet-lite0-{self.input_size}-v1.onnx"  # bump v when the network changes
+                # one export per input size; bump v when the network changes
+                onnx_path = Path(cache or cache_dir()) / f"effnet-lite0-{self.input_size}-v1.onnx"
                 if not onnx_path.is_file():
                     export_onnx(onnx_path, self.input_size)
                 self.session = ort_session(onnx_path, threads)
