@@ -333,10 +333,11 @@ def test_map_residual_is_lowest_at_the_true_pose_and_verification_rejects_a_wron
     state = first.state_dict()
     true = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])
     probe = _load(cfg, state)
-    cur = probe._prepare(F(1, true, INTR), None)  # (a step along one axis of the box moves few walls' depth)
+    cur = probe._prepare(F(1, true, INTR), None)
     at_true = probe.map_residual(cur, true)
     assert at_true < 0.02 and at_true == probe.map_residual(cur, true)  # same rays every call
-    far = se3_exp_np([0.1, 0.08, 0.1, 0.0, 0.0, 0.0])  # a feature step 16 cm from constant velocity
+    # a feature step 16 cm from constant velocity, diagonal: a step along one axis of the box moves few walls' depth
+    far = se3_exp_np([0.1, 0.08, 0.1, 0.0, 0.0, 0.0])
     assert probe.map_residual(cur, far) > 5 * at_true
 
     class Odometry:
