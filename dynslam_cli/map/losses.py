@@ -20,14 +20,20 @@ class LossTerms:
     free: torch.Tensor
 
 
+def sdf_band(z: torch.Tensor, target_d: torch.Tensor, truncation: float, dtype=torch.float32):
+    """Masks (R, S) as ``dtype`` of the samples z in front of the truncation band around the
+    measured depth target_d (R,) and of those inside it, on rays with depth (0 = missing)."""
+    td = target_d[:, None]
+    valid = (td > 0).to(dtype)
+    front = (z < td - truncation).to(dtype) * valid
+    back = (z > td + truncation).to(dtype)
+    return front, (1 - front) * (1 - back) * valid
+
+
 def sdf_free_losses(z: torch.Tensor, target_d: torch.Tensor, sdf: torch.Tensor, truncation: float):
     """Free-space and SDF losses; sdf in truncation units; target_d (R,) with 0 = missing."""
     td = target_d[:, None]
-    front = (z < td - truncation).to(sdf.dtype)
-    back = (z > td + truncation).to(sdf.dtype)
-    valid = (td > 0).to(sdf.dtype)
-    front = front * valid
-    band = (1 - front) * (1 - back) * valid
+    front, band = sdf_band(z, target_d, truncation, sdf.dtype)
     n_front = front.sum()
     n_band = band.sum()
     n_all = (n_front + n_band).clamp_min(1.0)

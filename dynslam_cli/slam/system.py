@@ -20,7 +20,7 @@ from dynslam_cli.geometry.camera import backproject, pixel_dirs
 from dynslam_cli.geometry.features import FeatureOdometry, FeatureSet
 from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
-from dynslam_cli.map.losses import ray_losses, smoothness_points, smoothness_tv
+from dynslam_cli.map.losses import ray_losses, sdf_band, smoothness_points, smoothness_tv
 from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.map.render import render_rays, sample_depths
 from dynslam_cli.slam.keyframes import Keyframe, depth_edges, subsample_depth, valid_pixels
@@ -213,11 +213,17 @@ class SLAM:
                 rel = res.T
         return orthonormalize(p1 @ rel)
 
+    @staticmethod
+    def _off_velocity(cand: np.ndarray, rel: np.ndarray) -> float:
+        """Distance (m) between the translations of an initial-guess step ``cand`` (previous camera
+        <- current) and the constant-velocity step ``rel``."""
+        return float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
+
     def _plausible(self, cand: np.ndarray, rel: np.ndarray, source: str, idx: int) -> bool:
-        """Whether an initial-guess step ``cand`` (previous camera <- current) lies within
-        ``tracking.max_jump`` of the constant-velocity step ``rel``; a rejected one is logged as a
-        ``guess_rejected`` event (tracking_events.json)."""
-        off = float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
+        """Whether an initial-guess step ``cand`` lies within ``tracking.max_jump`` of the
+        constant-velocity step ``rel``; a rejected one is logged as a ``guess_rejected`` event
+        (tracking_events.json)."""
+        off = self._off_velocity(cand, rel)
         if off <= self.cfg.tracking.max_jump:
             return True
         self._guess_rejected(idx, f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
@@ -229,7 +235,7 @@ class SLAM:
         constant-velocity step ``rel`` fits the map at least as well as that step does (median
         SDF residual of the same static rays); a step that fits worse is rejected (logged)."""
         tc = self.cfg.tracking
-        off = float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
+        off = self._off_velocity(cand, rel)
         if tc.feature_verify <= 0 or off <= tc.feature_verify or self.model is None:
             return True
         p1 = self.poses[-1]
@@ -256,9 +262,10 @@ class SLAM:
         T = self._t(pose_c2w)
         out = render_rays(self.model, T[:3, 3].unsqueeze(0), self.dirs[idx] @ T[:3, :3].T, z, color=False)
         tr = self.cfg.map.truncation
-        band = ((z - d_t[:, None]).abs() <= tr) & (d_t[:, None] > 0)
-        err = ((z + out["sdf"] * tr - d_t[:, None]).abs() * band).sum(1) / band.sum(1).clamp_min(1)
-        return float(err[band.any(1)].median()) if bool(band.any()) else float("inf")
+        _, band = sdf_band(z, d_t, tr, out["sdf"].dtype)  # the SDF loss's band and residual
+        n_band = band.sum(1)
+        err = ((z + out["sdf"] * tr - d_t[:, None]).abs() * band).sum(1) / n_band.clamp_min(1)
+        return float(err[n_band > 0].median()) if bool((n_band > 0).any()) else float("inf")
 
     def _guess_rejected(self, idx: int, detail: str) -> None:
         """Log an initial guess that was not used (a ``guess_rejected`` event, tracking_events.json)."""
