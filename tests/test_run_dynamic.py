@@ -192,6 +192,20 @@ def test_stationary_instances_know_what_stayed_put():
     assert not stationary_instances(now, ids, np.eye(4), intr, kfs[:1]).any()  # one keyframe is not enough
     gone = [SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(wall)), kfs[0]]
     assert stationary_instances(now, ids, np.eye(4), intr, gone).tolist() == [False, False]
+    # a keyframe that did not look there (no valid depth) neither confirms nor refutes ...
+    blind = SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(np.zeros_like(wall)))
+    assert stationary_instances(now, ids, np.eye(4), intr, [blind] + kfs).tolist() == [True, False]
+    # ... nor counts among the two that must have looked
+    assert not stationary_instances(now, ids, np.eye(4), intr, [blind, kfs[0]]).any()
+    turned = np.array([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]])  # looking along +x
+    aside = SimpleNamespace(pose_c2w=turned, depth_raw_small=subsample_depth(wall))
+    assert stationary_instances(now, ids, np.eye(4), intr, kfs + [aside]).tolist() == [True, False]
+    # a keyframe that saw something in front of box 1 (a passer-by) did not look at it either
+    passer = before.copy()
+    passer[5:35, 5:30] = 0.8
+    hidden = SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=subsample_depth(passer))
+    assert stationary_instances(now, ids, np.eye(4), intr, kfs + [hidden]).tolist() == [True, False]
+    assert not stationary_instances(now, ids, np.eye(4), intr, [hidden, kfs[0]]).any()
 
 
 def test_stationary_labels_only_with_centre_feature_or_when_asked():
@@ -200,9 +214,9 @@ def test_stationary_labels_only_with_centre_feature_or_when_asked():
     ids = np.ones((48, 64), np.int32)
     kfs = [SimpleNamespace(frame_id=i, pose_c2w=np.eye(4), depth_raw_small=subsample_depth(depth)) for i in (2, 4)]
 
-    def loop(centre, anyway, tol=0.0, tol_centre=0.0):
-        return SimpleNamespace(still_frames=10, still_without_centre=anyway, still_tolerance=tol,
-                               still_tolerance_centre=tol_centre,
+    def loop(centre, anyway, tol=0.0, tol_centre=0.0, frames=10, frames_centre=0):
+        return SimpleNamespace(still_frames=frames, still_frames_centre=frames_centre, still_without_centre=anyway,
+                               still_tolerance=tol, still_tolerance_centre=tol_centre,
                                mm=SimpleNamespace(m=SimpleNamespace(centre_feature=centre, depth_threshold=0.3)),
                                slam=SimpleNamespace(n_frames=6, keyframes=kfs, intr=intr))
 
@@ -218,6 +232,12 @@ def test_stationary_labels_only_with_centre_feature_or_when_asked():
     # with the centre feature run.still_tolerance_centre applies instead (0 = t_d)
     assert DynamicLoop.stationary(loop(True, True, 0.05), closer, ids, np.eye(4)).tolist() == [True]
     assert DynamicLoop.stationary(loop(True, True, 0.3, 0.05), closer, ids, np.eye(4)).tolist() == [False]
+    # the window: the keyframes of frames 2 and 4 seen from frame 5; over the last 2 frames only one
+    assert DynamicLoop.stationary(loop(False, True, frames=2), depth, ids, np.eye(4)).tolist() == [False]
+    # with the centre feature run.still_frames_centre applies instead (0 = run.still_frames)
+    assert DynamicLoop.stationary(loop(True, False, frames=2, frames_centre=10), depth, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(True, False, frames=10, frames_centre=2), depth, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(True, False, frames=2), depth, ids, np.eye(4)).tolist() == [False]
 
 
 def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():

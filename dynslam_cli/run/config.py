@@ -43,6 +43,8 @@ class RunConfig:
                                  "run.still_frames to count it as stayed put; 0 = motion.depth_threshold.")
     still_tolerance_centre: float = opt(0.0, "The same with motion.centre_feature, where 'static' is learnt at the "
                                         "instance's place only; 0 = motion.depth_threshold.")
+    still_frames_centre: int = opt(0, "run.still_frames with motion.centre_feature (a shorter window costs less where "
+                                      "'static' is learnt at the place only); 0 = run.still_frames.")
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
                                "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "

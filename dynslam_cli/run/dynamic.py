@@ -38,6 +38,7 @@ class DynamicLoop:
         self.retrack_fraction = float(cfg.run.retrack_fraction)
         self.occlusion_aware = bool(cfg.run.check_occlusion)
         self.still_frames = int(cfg.run.still_frames)
+        self.still_frames_centre = int(cfg.run.still_frames_centre)
         self.still_without_centre = bool(cfg.run.still_without_centre)
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.still_tolerance_centre = float(cfg.run.still_tolerance_centre)
@@ -99,16 +100,19 @@ class DynamicLoop:
         """Instances that stayed put over the last ``run.still_frames`` frames (see
         :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None unless the centre feature is
         on (without it, 'static' would be learnt for the object everywhere, not at its place) or
-        ``run.still_without_centre`` asks for it anyway.  Within ``run.still_tolerance_centre`` of
-        what the keyframes saw with the centre feature, ``run.still_tolerance`` without it."""
-        if self.still_frames <= 0 or not (self.mm.m.centre_feature or self.still_without_centre):
+        ``run.still_without_centre`` asks for it anyway.  With the centre feature over
+        ``run.still_frames_centre`` frames (0 = the same) and within ``run.still_tolerance_centre``
+        of what the keyframes saw, without it within ``run.still_tolerance``."""
+        centre = bool(self.mm.m.centre_feature)
+        frames = self.still_frames_centre if centre and self.still_frames_centre > 0 else self.still_frames
+        if frames <= 0 or not (centre or self.still_without_centre):
             return None
         from dynslam_cli.slam.keyframes import stationary_instances
 
         now = self.slam.n_frames - 1
-        window = [kf for kf in self.slam.keyframes if now - self.still_frames <= kf.frame_id < now]
+        window = [kf for kf in self.slam.keyframes if now - frames <= kf.frame_id < now]
         # with the centre feature 'static' is learnt at this place only, a looser test costs less
-        tol = self.still_tolerance_centre if self.mm.m.centre_feature else self.still_tolerance
+        tol = self.still_tolerance_centre if centre else self.still_tolerance
         tol = tol if tol > 0 else self.mm.m.depth_threshold
         return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, tol)
 

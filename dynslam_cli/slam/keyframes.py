@@ -165,11 +165,15 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
                          tolerance: float = 0.3, min_seen: float = 0.5, min_agree: float = 0.8,
                          step: int = 4) -> np.ndarray:
     """(K,) bool for instance ids 1..K: the instance's 3-D points (at ``pose_c2w``) are where every
-    one of ``keyframes`` saw a surface too, i.e. it has stayed put since the oldest of them.
+    one of ``keyframes`` that looked at them saw a surface too, i.e. it has stayed put since the
+    oldest of them.
 
-    For each keyframe at least ``min_seen`` of the instance's points must project inside it onto a
-    valid raw depth (``depth_raw_small``), and of those at least ``min_agree`` must lie within
-    ``tolerance`` (m) of that depth.  Needs two keyframes or more; False otherwise."""
+    A keyframe looked at the instance when at least ``min_seen`` of its points project inside it
+    onto a valid raw depth (``depth_raw_small``) not nearer than the point by more than
+    ``tolerance`` (m; nearer = something in front hid it); of those at least ``min_agree`` must then
+    lie within ``tolerance`` of that depth (a keyframe that saw past the point saw the place empty).
+    Keyframes that did not look at it neither confirm nor refute; two that did are needed,
+    otherwise False."""
     k = int(ids.max(initial=0))
     out = np.zeros(k, bool)
     kfs = [kf for kf in keyframes if kf.depth_raw_small is not None]
@@ -186,6 +190,7 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     lab = lab[m] - 1
     n = np.bincount(lab, minlength=k)[:k]
     ok = n > 0
+    looked = np.zeros(k, np.int64)
     H, W = depth.shape
     for kf in kfs:
         pc, u, v, inside = _project(world, kf.pose_c2w, intr, W, H)
@@ -194,12 +199,14 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
         iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
         iv = np.clip(np.round(np.where(inside, v, 0) / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
         d_kf = small[iv, iu].astype(np.float32)
-        seen = inside & (d_kf > 0)
+        seen = inside & (d_kf > 0) & (d_kf >= pc[:, 2] - tolerance)  # not hidden behind something nearer
         agree = seen & (np.abs(d_kf - pc[:, 2]) <= tolerance)
         n_seen = np.bincount(lab[seen], minlength=k)[:k]
         n_agree = np.bincount(lab[agree], minlength=k)[:k]
-        ok &= (n_seen >= min_seen * n) & (n_agree >= min_agree * np.maximum(n_seen, 1))
-    return ok
+        saw = n_seen >= min_seen * n
+        ok &= ~saw | (n_agree >= min_agree * np.maximum(n_seen, 1))
+        looked += saw
+    return ok & (looked >= 2)
 
 
 def _gone(kf) -> np.ndarray:
