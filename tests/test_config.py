@@ -100,4 +100,5 @@ def test_yolo_person_overlay_loads_over_bonn():
     # bonn.yaml beneath it, with its dynamic-mode local map and map-only bundle adjustment
     assert cfg.tracking.feature_init and cfg.data.max_depth == 3.0 and cfg.tracking.feature_verify == 0.1
     assert cfg.tracking.feature_refs_dynamic == 8 and cfg.mapping.lr_pose_dynamic == 0.0
+    assert cfg.tracking.feature_verify_min_static == 0.05
     assert cfg.motion.encoder_input_size == 160

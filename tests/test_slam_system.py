@@ -355,3 +355,11 @@ def test_map_residual_is_lowest_at_the_true_pose_and_verification_rejects_a_wron
         # kept: PnP's pose; rejected: constant velocity from one pose, the identity
         assert np.allclose(r.pose_c2w, far if kept else np.eye(4))
         assert [e["kind"] for e in s.events] == ([] if kept else ["guess_rejected"])
+    # tracking.feature_verify_min_static: too few static pixels to judge a far step, it is refused
+    for min_static, kept in ((0.01, True), (1.01, False)):
+        cfg.tracking.feature_verify, cfg.tracking.feature_verify_min_static = 0.1, min_static
+        s = _load(cfg, state)
+        s._odometry = Odometry(s._feature_odometry(), far)
+        r = s.track(F(1, far, INTR))
+        assert np.allclose(r.pose_c2w, far if kept else np.eye(4))
+        assert [e["detail"].split(",")[0].split()[-1] for e in s.events] == ([] if kept else ["static"])

@@ -52,6 +52,9 @@ class TrackingConfig:
                                 "frame's static rays at both poses); 0 = off. bonn.yaml sets 0.1: on the crowd clip "
                                 "(geometric, seed 1) a 0.215 m PnP step from 106 inliers lost the camera (54.3 cm "
                                 "ATE) without it, 2.69 cm with it.")
+    feature_verify_min_static: float = opt(0.0, "tracking.feature_verify: a far PnP step is refused outright when "
+                                           "fewer than this fraction of the frame's pixels are static with depth "
+                                           "(too little of the map in view to judge it); 0 = off.")
     feature_keep_ref: float = opt(0.15, "Feature init: frames are matched to one reference frame while they share at "
                                   "least this fraction of its keypoints with depth as inliers; below it the frame "
                                   "just tracked becomes the reference (fewer, longer baselines drift less than "

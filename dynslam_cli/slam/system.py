@@ -238,6 +238,12 @@ class SLAM:
         off = self._off_velocity(cand, rel)
         if tc.feature_verify <= 0 or off <= tc.feature_verify or self.model is None:
             return True
+        static = len(cur.valid) / float(self.H * self.W)
+        if static < tc.feature_verify_min_static:
+            self._guess_rejected(cur.idx, f"feature step {off:.3f} m from constant velocity with {static:.1%} of the "
+                                          f"pixels static, below tracking.feature_verify_min_static "
+                                          f"{tc.feature_verify_min_static:g}")
+            return False
         p1 = self.poses[-1]
         r_feat = self.map_residual(cur, p1 @ cand)
         r_cv = self.map_residual(cur, p1 @ rel)
