@@ -233,7 +233,9 @@ class SLAM:
     def _verified(self, cur: _Current, cand: np.ndarray, rel: np.ndarray) -> bool:
         """Whether a feature step ``cand`` farther than ``tracking.feature_verify`` (m) from the
         constant-velocity step ``rel`` fits the map at least as well as that step does (median
-        SDF residual of the same static rays); a step that fits worse is rejected (logged)."""
+        SDF residual of the same static rays); a step that fits worse is rejected (logged), and so is
+        any far step where fewer than ``tracking.feature_verify_min_static`` of the frame's pixels
+        are static with depth (too little of the map in view to judge it)."""
         tc = self.cfg.tracking
         off = self._off_velocity(cand, rel)
         if tc.feature_verify <= 0 or off <= tc.feature_verify or self.model is None:
