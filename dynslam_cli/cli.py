@@ -39,7 +39,7 @@ def make_group(help: str) -> typer.Typer:  # noqa: A002
 
 app = make_group("Dense neural RGB-D SLAM that learns to forget moving objects.")
 
-COMMAND_ORDER = ("synth", "data", "run", "evaluate", "experiments", "motion", "config")
+COMMAND_ORDER = ("synth", "data", "run", "demo", "evaluate", "experiments", "motion", "config")
 
 
 def _register_commands() -> None:

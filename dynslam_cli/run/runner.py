@@ -9,7 +9,6 @@ timing and run.json.  Every file is written atomically; run.json says ``complete
 from __future__ import annotations
 
 import json
-import os
 import platform
 import random
 import sys
@@ -24,6 +23,7 @@ import numpy as np
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
+from dynslam_cli.utils.threads import seed_everything, set_threads
 
 MODES = ("static", "dynamic")
 
@@ -55,28 +55,6 @@ def select_device(name: str):
     if name == "cpu":
         return torch.device("cpu")
     raise DynslamError(f"unknown device '{name}': use auto, cpu or cuda")
-
-
-def seed_everything(seed: int) -> None:
-    import torch
-
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def set_threads(n: int) -> int:
-    import torch
-
-    n = int(n) if n and n > 0 else (os.cpu_count() or 1)
-    torch.set_num_threads(n)
-    try:
-        import numba
-
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-    except Exception:  # numba absent or threads fixed: the torch setting still holds
-        pass
-    return n
 
 
 def versions() -> dict:

@@ -18,7 +18,10 @@ dynslam's own parallelism uses processes.
 from __future__ import annotations
 
 import os
+import random
 from typing import Optional
+
+import numpy as np
 
 SHARED_LAYER = "workqueue"
 
@@ -36,3 +39,25 @@ def choose_numba_layer() -> Optional[str]:
         return None
     numba.config.THREADING_LAYER = SHARED_LAYER
     return SHARED_LAYER
+
+
+def seed_everything(seed: int) -> None:
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def set_threads(n: int) -> int:
+    import torch
+
+    n = int(n) if n and n > 0 else (os.cpu_count() or 1)
+    torch.set_num_threads(n)
+    try:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    except Exception:  # numba absent or threads fixed: the torch setting still holds
+        pass
+    return n
