@@ -84,7 +84,7 @@ def register(app: typer.Typer) -> None:
         """Montage of input / rendered depth / motion mask at chosen frames of a run with saved masks."""
         from dynslam_cli.errors import DynslamError
         from dynslam_cli.eval import runs
-        from dynslam_cli.eval.tables import montage
+        from dynslam_cli.eval.plots import montage
 
         d = runs.require_run_dir(run_dir)
         chosen = [s.strip() for s in frames.split(",") if s.strip()] if frames else None

@@ -28,7 +28,7 @@ import numpy as np
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.eval import runs
-from dynslam_cli.utils.io import atomic_path, write_json_atomic
+from dynslam_cli.utils.io import write_json_atomic
 
 ALIGN_MODES = ("se3", "sim3", "origin", "none")
 
@@ -171,42 +171,6 @@ def compute_ate(est_file: str | Path, gt_file: str | Path, align: str = "se3",
     )
 
 
-def plot_ate(result: AteResult, out_png: str | Path, title: str = "") -> Path:
-    """Top view (the two axes of largest ground-truth extent): GT line, estimate coloured by error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
-    gt, est, err = result.gt_xyz, result.est_xyz, result.errors
-    axes = np.argsort(-np.ptp(gt, axis=0))[:2]
-    axes.sort()
-    names = "xyz"
-    fig, ax = plt.subplots(figsize=(6, 5), dpi=100)
-    ax.plot(gt[:, axes[0]], gt[:, axes[1]], "k--", lw=1, label="ground truth")
-    pts = est[:, axes].reshape(-1, 1, 2)
-    if len(pts) > 1:
-        segs = np.concatenate([pts[:-1], pts[1:]], axis=1)
-        lc = LineCollection(segs, cmap="viridis", linewidths=2)
-        lc.set_array(err[:-1])
-        ax.add_collection(lc)
-        fig.colorbar(lc, ax=ax, label="position error (m)")
-    ax.scatter(est[:1, axes[0]], est[:1, axes[1]], c="r", s=20, label="estimate start")
-    ax.set_xlabel(f"{names[axes[0]]} (m)")
-    ax.set_ylabel(f"{names[axes[1]]} (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.autoscale()
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or f"ATE RMSE {result.rmse_m:.4f} m ({result.alignment}, still {result.rmse_still_m:.3f} m)",
-                 fontsize=9)
-    fig.tight_layout()
-    with atomic_path(out_png) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-    return Path(out_png)
-
-
 def evaluate_run_ate(run_dir: str | Path, gt: Optional[str | Path] = None, align: Optional[str] = None,
                      max_diff: Optional[float] = None, plot: bool = True) -> AteResult:
     """ATE of a run folder: reads traj_est.txt, writes ate.json (and ate.png)."""
@@ -222,6 +186,8 @@ def evaluate_run_ate(run_dir: str | Path, gt: Optional[str | Path] = None, align
     res = compute_ate(est_file, gt, align or cfg.align, max_diff if max_diff is not None else cfg.max_time_diff)
     write_json_atomic(run_dir / "ate.json", res.to_json())
     if plot:
+        from dynslam_cli.eval.plots import plot_ate
+
         plot_ate(res, run_dir / "ate.png", title=f"{run_dir.name}: ATE RMSE {res.rmse_m:.4f} m "
                                                  f"(still camera {res.rmse_still_m:.3f} m)")
     return res

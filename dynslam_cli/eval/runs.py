@@ -171,3 +171,11 @@ def finite_or_error(arr: np.ndarray, what: str) -> np.ndarray:
     if not np.isfinite(arr).all():
         raise DynslamError(f"{what} contains NaN or infinite values")
     return arr
+
+
+def group_by(items, key) -> dict:
+    """``{key(item): [items...]}`` in first-seen order."""
+    out: dict = {}
+    for it in items:
+        out.setdefault(key(it), []).append(it)
+    return out

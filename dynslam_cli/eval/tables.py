@@ -35,7 +35,8 @@ import numpy as np
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.eval import runs
-from dynslam_cli.utils.io import atomic_path, write_text_atomic
+from dynslam_cli.eval.plots import montage, plot_updates
+from dynslam_cli.utils.io import write_text_atomic
 
 DASH = "—"
 PUBLISHED_METHODS = ("ReFusion", "StaticFusion", "DynaSLAM", "Co-SLAM")
@@ -226,13 +227,6 @@ def _defaults():
     return MotionConfig()
 
 
-def _group(recs, key):
-    out: dict = {}
-    for r in recs:
-        out.setdefault(key(r), []).append(r)
-    return out
-
-
 def table_ate(recs: list[RunRecord], pub: dict) -> Table:
     d = _defaults()
     dyn = [r for r in recs if r.mode == "dynamic" and r.encoder == d.encoder and r.segmenter == d.segmenter
@@ -243,7 +237,7 @@ def table_ate(recs: list[RunRecord], pub: dict) -> Table:
     cols = ["ours dynamic", "ours static", "still camera", *PUBLISHED_METHODS, "paper"]
     t = Table("table1_ate", "ATE RMSE (m) after SE(3) alignment; mean ± std over seeds", cols,
               best=[([0, 1, 3, 4, 5, 6, 7], True)])
-    gd, gs = _group(dyn, lambda r: r.seq), _group(sta, lambda r: r.seq)
+    gd, gs = runs.group_by(dyn, lambda r: r.seq), runs.group_by(sta, lambda r: r.seq)
     for s in seqs:
         ours = gd.get(s, []) + gs.get(s, [])
         row = [stat_cell([r.ate for r in gd.get(s, [])]), stat_cell([r.ate for r in gs.get(s, [])]),
@@ -276,7 +270,7 @@ def table_axis(recs: list[RunRecord], axis: str, pub: dict) -> Table:
     seqs = sorted({r.seq for r in sel} | set(pubsec))
     cols = [*labels, *[f"paper {c}" for c in pubcols]]
     t = Table(name, title, cols, best=[(list(range(len(labels))), True)])
-    g = _group(sel, lambda r: (r.seq, key(r)))
+    g = runs.group_by(sel, lambda r: (r.seq, key(r)))
     for s in seqs:
         row = [stat_cell([r.ate for r in g.get((s, v), [])]) for v in values]
         row += [pub_cell((pubsec.get(s) or {}).get(c)) for c in pubcols]
@@ -291,7 +285,7 @@ def table_replay(recs: list[RunRecord]) -> Table:
     cols = ["updates with replay", "updates without replay", "ATE with replay", "ATE without replay"]
     t = Table("ablation_replay", "Classifier updates and ATE RMSE (m) with / without the replay buffer", cols,
               best=[([0, 1], True), ([2, 3], True)])
-    g = _group(sel, lambda r: (r.seq, r.replay))
+    g = runs.group_by(sel, lambda r: (r.seq, r.replay))
     for s in sorted({r.seq for r in sel}):
         on, off = g.get((s, True), []), g.get((s, False), [])
         row = [stat_cell([len(r.updates) if r.updates is not None else None for r in on], nd=1),
@@ -307,7 +301,7 @@ def table_runtime(recs: list[RunRecord], pub: dict) -> Table:
     pub_rt = pub.get("runtime_ms") or {}
     comps = comps + [c for c in pub_rt if c not in comps]
     t = Table("runtime", "Median run-time per frame and component (ms); mean ± std over seeds", [*comps, "fps"])
-    g = _group([r for r in recs if r.timing or r.fps], lambda r: (r.seq, r.mode))
+    g = runs.group_by([r for r in recs if r.timing or r.fps], lambda r: (r.seq, r.mode))
     for (s, m), rs in sorted(g.items()):
         t.rows.append((f"{s} ({m})", [stat_cell([r.timing.get(c) for r in rs], nd=1) for c in comps]
                        + [stat_cell([r.fps for r in rs], nd=2)]))
@@ -325,7 +319,7 @@ def table_mesh(recs: list[RunRecord]) -> Table:
     d = _defaults()
     dyn = [r for r in recs if r.mode == "dynamic" and r.mesh and r.encoder == d.encoder and not r.prior]
     sta = [r for r in recs if r.mode == "static" and r.mesh]
-    gd, gs = _group(dyn, lambda r: r.seq), _group(sta, lambda r: r.seq)
+    gd, gs = runs.group_by(dyn, lambda r: r.seq), runs.group_by(sta, lambda r: r.seq)
     for s in sorted(set(gd) | set(gs)):
         row = []
         for key, scale in (("accuracy_m", 100), ("completion_m", 100), ("completion_ratio", 100)):
@@ -333,94 +327,6 @@ def table_mesh(recs: list[RunRecord]) -> Table:
                     stat_cell([r.mesh.get(key) for r in gs.get(s, [])], scale, 2)]
         t.rows.append((s, row))
     return t
-
-
-# ---------------------------------------------------------------- plots
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_updates(recs: list[RunRecord], out: Path) -> list[Path]:
-    paths = []
-    sel = [r for r in recs if r.mode == "dynamic" and r.updates is not None]
-    for s, rs in sorted(_group(sel, lambda r: r.seq).items()):
-        plt = _plt()
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-        for r in sorted(rs, key=lambda r: (not r.replay, r.seed)):
-            x = sorted(r.updates)
-            ax.step([0, *x], range(len(x) + 1), where="post", color="C0" if r.replay else "C3", alpha=0.8,
-                    label=f"{'with' if r.replay else 'without'} replay, seed {r.seed}")
-        ax.set_xlabel("frame (or timestamp) of the update")
-        ax.set_ylabel("classifier updates so far")
-        ax.set_title(f"{s}: classifier updates", fontsize=9)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        p = out / "plots" / f"classifier_updates_{re.sub(r'[^A-Za-z0-9._-]+', '-', s)}.png"
-        with atomic_path(p) as tmp:
-            fig.savefig(tmp)
-        plt.close(fig)
-        paths.append(p)
-    return paths
-
-
-def _imread(path: Path, flags: int):
-    """cv2.imread without its warning for files a run did not write (None then)."""
-    import cv2
-
-    return cv2.imread(str(path), flags) if path.is_file() else None
-
-
-def montage(run_dir: Path, out_png: Path, frames: Optional[list[str]] = None, n: int = 4) -> Optional[Path]:
-    """Rows of input RGB / rendered depth / motion mask at chosen mask timestamps (None when no masks)."""
-    import cv2
-
-    mdir = run_dir / "masks"
-    stems = sorted((p.stem for p in mdir.glob("*.png")), key=lambda s: float(s) if _isfloat(s) else 0.0) \
-        if mdir.is_dir() else []
-    if not stems:
-        return None
-    if frames:
-        missing = [f for f in frames if f not in stems]
-        if missing:
-            raise DynslamError(f"no mask for frame(s) {', '.join(missing)} in {mdir}")
-        chosen = frames
-    else:
-        chosen = [stems[i] for i in np.unique(np.linspace(0, len(stems) - 1, min(n, len(stems))).astype(int))]
-    sp = runs.sequence_path(run_dir)
-    plt = _plt()
-    fig, axes = plt.subplots(len(chosen), 3, figsize=(9, 2.4 * len(chosen)), dpi=90, squeeze=False)
-    for row, ts in zip(axes, chosen, strict=False):
-        rgb_p = sp / "rgb" / f"{ts}.png" if sp is not None else None
-        panels = [
-            ("input", cv2.imread(str(rgb_p))[..., ::-1] if rgb_p is not None and rgb_p.is_file() else None, None),
-            ("rendered depth", _imread(run_dir / "renders" / f"{ts}_depth.png", cv2.IMREAD_UNCHANGED), "viridis"),
-            ("motion mask", _imread(mdir / f"{ts}.png", cv2.IMREAD_GRAYSCALE), "gray"),
-        ]
-        for ax, (title, img, cmap) in zip(row, panels, strict=False):
-            ax.axis("off")
-            ax.set_title(f"{title} {ts}", fontsize=7)
-            if img is None:
-                ax.text(0.5, 0.5, "not saved", ha="center", va="center", fontsize=8)
-            else:
-                ax.imshow(img, cmap=cmap)
-    fig.tight_layout()
-    with atomic_path(out_png) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-    return out_png
-
-
-def _isfloat(s: str) -> bool:
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return False
 
 
 # ---------------------------------------------------------------- entry point
