@@ -98,6 +98,46 @@ def test_timestamps_do_not_associate(tmp_path: Path):
     fails(d, "max_time_diff=0.5 s", max_time_diff=0.5)
 
 
+@pytest.mark.parametrize("rgb_ts, depth_ts, where, how", [
+    ([0.0, 0.2, 0.1], None, "rgb.txt:5", "0.100000 is earlier than 0.200000 on line 4"),
+    ([0.0, 0.1, 0.1, 0.2], [0.0, 0.1, 0.15, 0.2], "rgb.txt:5", "0.100000 repeats 0.100000 on line 4"),
+    ([0.0, 0.1, 0.2], [0.0, 0.2, 0.1], "depth.txt:4", "0.100000 is earlier than 0.200000 on line 3"),
+])
+def test_unsorted_or_repeated_list_timestamps(tmp_path: Path, rgb_ts, depth_ts, where, how):
+    d = make_folder(tmp_path / "s", rgb_ts=rgb_ts, depth_ts=depth_ts)
+    fails(d, str(d / where), how, "sorted by time")
+
+
+def test_unsorted_associations_and_groundtruth(tmp_path: Path):
+    d = make_folder(tmp_path / "s", n=3)
+    lines = [f"{t} rgb/{t}.png {t} depth/{t}.png" for t in ("0.000000", "0.200000", "0.100000")]
+    (d / "associations.txt").write_text("\n".join(lines) + "\n")
+    fails(d, str(d / "associations.txt") + ":3", "rgb timestamp 0.100000 is earlier than 0.200000 on line 2")
+    lines = [f"{t} rgb/{t}.png {u} depth/{u}.png" for t, u in
+             (("0.000000", "0.000000"), ("0.100000", "0.200000"), ("0.200000", "0.100000"))]
+    (d / "associations.txt").write_text("\n".join(lines) + "\n")
+    fails(d, str(d / "associations.txt") + ":3", "depth timestamp 0.100000 is earlier")
+    d2 = make_folder(tmp_path / "s2", n=3, gt_ts=[0.0, 0.1, 0.1])
+    fails(d2, str(d2 / "groundtruth.txt") + ":5", "0.100000 repeats 0.100000 on line 4")
+
+
+def test_association_running_backwards(tmp_path: Path):
+    # each list is sorted, but with a wide max_time_diff the nearest pairs cross: rgb 0.0 <-> depth 0.19,
+    # rgb 0.1 <-> depth 0.09
+    d = make_folder(tmp_path / "s", rgb_ts=[0.0, 0.1], depth_ts=[0.09, 0.19])
+    fails(d, str(d / "depth.txt") + ":2", "depth 0.090000 pairs with rgb 0.100000", "runs backwards",
+          "max_time_diff=0.5", max_time_diff=0.5)
+    assert len(open_sequence(str(d), data_cfg(**CFG, max_time_diff=0.05))) == 1
+
+
+def test_cli_unsorted_rgb_txt(tmp_path: Path):
+    d = make_folder(tmp_path / "s", rgb_ts=[0.0, 0.2, 0.1])
+    before = (d / "rgb.txt").read_bytes()
+    _assert_cli_error(runner.invoke(app, ["info", "--seq", str(d), "--set", "data.intrinsics=[30,30,16,12]"]),
+                      str(d / "rgb.txt") + ":5", "is earlier than")
+    assert (d / "rgb.txt").read_bytes() == before
+
+
 def test_no_intrinsics_for_generic_folder(tmp_path: Path):
     d = make_folder(tmp_path / "s", n=2)
     fails(d, "no camera intrinsics", str(d), "data.intrinsics", intrinsics=None)

@@ -2,7 +2,7 @@
 
 Readers (``tum.py`` for the TUM layout shared by TUM, Bonn and synthetic folders) build a list of
 :class:`FrameRecord` (file names and per-frame ground truth, already associated and cut);
-images are decoded only when a frame is requested.
+images are decoded only when a frame is requested.  Frame timestamps increase strictly.
 """
 
 from __future__ import annotations
@@ -58,6 +58,12 @@ class Sequence:
         self.has_gt_masks = bool(has_gt_masks)
         self.has_instances = bool(has_instances)
         self.total_pairs = len(records) if total_pairs is None else total_pairs
+        for k in range(1, len(records)):
+            if not records[k].timestamp > records[k - 1].timestamp:
+                a, b = records[k - 1], records[k]
+                raise DynslamError(
+                    f"frames of {dataset}/{name} ({self.path}) are not in time order: frame {k} at "
+                    f"{b.stamp or b.timestamp} follows frame {k - 1} at {a.stamp or a.timestamp}")
 
     # -- sequence protocol -------------------------------------------------------------------
     def __len__(self) -> int:

@@ -7,7 +7,9 @@ as it is instead of associating the two lists.
 
 Association of rgb and depth follows TUM's ``associate.py``: all pairs closer than
 ``max_time_diff`` (strictly) are candidates, taken smallest difference first, each timestamp used
-at most once; the result is ordered by rgb time.
+at most once; the result is ordered by rgb time.  Every list must be sorted by time without
+repeats, and the associated depth times must increase with the rgb times (else a DynslamError
+names the file and line).
 
 Ground truth per frame, at the rgb timestamp: the pose is **interpolated** (translation linearly,
 rotation by slerp) between the two ground-truth samples around the rgb timestamp when the
@@ -62,6 +64,17 @@ def _timestamp(token: str, path: Path, no: int) -> float:
     return value
 
 
+def check_increasing(entries: list[ListEntry], path: Path, what: str = "timestamp") -> None:
+    """Timestamps of a list file must increase strictly from line to line (a repeat would drop a
+    frame in the association, a step back would run frames out of order)."""
+    for prev, cur in zip(entries, entries[1:], strict=False):
+        if cur.timestamp > prev.timestamp:
+            continue
+        how = "repeats" if cur.timestamp == prev.timestamp else "is earlier than"
+        raise DynslamError(f"{path}:{cur.line}: {what} {cur.stamp} {how} {prev.stamp} on line {prev.line}; "
+                           f"the list must be sorted by time without repeats")
+
+
 def read_file_list(path: Path) -> list[ListEntry]:
     """``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line."""
     path = Path(path)
@@ -73,6 +86,7 @@ def read_file_list(path: Path) -> list[ListEntry]:
         out.append(ListEntry(_timestamp(parts[0], path, no), parts[0], parts[1], no))
     if not out:
         raise DynslamError(f"{path} lists no images")
+    check_increasing(out, path)
     return out
 
 
@@ -92,13 +106,16 @@ def read_associations(path: Path) -> list[tuple[ListEntry, ListEntry]]:
         out.append((a, b))
     if not out:
         raise DynslamError(f"{path} lists no image pairs")
+    check_increasing([a for a, _ in out], path, "rgb timestamp")
+    check_increasing([b for _, b in out], path, "depth timestamp")
     return out
 
 
 def read_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A TUM trajectory file → (timestamps N, camera-to-world poses N×4×4), sorted by time."""
+    """A TUM trajectory file → (timestamps N, camera-to-world poses N×4×4), sorted by time; a
+    repeated timestamp is an error."""
     path = Path(path)
-    stamps, poses = [], []
+    stamps, poses, lines = [], [], []
     for no, parts in _data_lines(path):
         if len(parts) != 8:
             raise DynslamError(f"{path}:{no}: malformed line: expected 'timestamp tx ty tz qx qy qz qw', "
@@ -118,10 +135,16 @@ def read_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
         T[:3, 3] = vals[1:4]
         stamps.append(vals[0])
         poses.append(T)
+        lines.append((no, parts[0]))
     if not stamps:
         return np.zeros(0), np.zeros((0, 4, 4))
     t = np.asarray(stamps, dtype=np.float64)
     order = np.argsort(t, kind="stable")
+    repeat = np.flatnonzero(np.diff(t[order]) == 0)
+    if repeat.size:  # two poses at one time: which one holds is undefined
+        (n0, s0), (n1, s1) = lines[order[repeat[0]]], lines[order[repeat[0] + 1]]
+        raise DynslamError(f"{path}:{n1}: timestamp {s1} repeats {s0} on line {n0}; "
+                           f"a trajectory holds one pose per time")
     return t[order], np.asarray(poses, dtype=np.float64)[order]
 
 
@@ -355,12 +378,18 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
                 f"depth {depth[0].timestamp:.6f}…{depth[-1].timestamp:.6f})")
         pairs = [(rgb[i], depth[j]) for i, j in idx]
         source = f"{rgb_file} and {depth_file}"
+        for (r0, d0), (r1, d1) in zip(pairs, pairs[1:], strict=False):
+            if d1.timestamp <= d0.timestamp:  # only with a max_time_diff wider than the frame interval
+                raise DynslamError(
+                    f"{depth_file}:{d1.line}: depth {d1.stamp} pairs with rgb {r1.stamp} ({rgb_file} line "
+                    f"{r1.line}) but depth {d0.stamp} (line {d0.line}) with the earlier rgb {r0.stamp}: the "
+                    f"association runs backwards; lower data.max_time_diff={max_diff:g}")
 
     keep = cut_indices(len(pairs), int(dc.start), int(dc.frames), int(dc.stride), source)
     pairs_cut = [pairs[k] for k in keep]
 
     # listed files must exist
-    for k, (r, d) in zip(keep, pairs_cut):
+    for r, d in pairs_cut:
         for entry, kind in ((r, "rgb"), (d, "depth")):
             if not (folder / entry.file).is_file():
                 where = source if assoc_file.is_file() else str(folder / f"{kind}.txt")
