@@ -4,11 +4,13 @@ Each command parses its arguments and calls one library function that returns a 
 Command modules live in ``dynslam_cli/commands/`` and each exposes ``register(app)``; heavy
 imports (torch, evo, onnxruntime, ...) happen inside the command bodies so `dynslam --help`
 stays instant.  Every :class:`~dynslam_cli.errors.DynslamError` becomes one line on stderr and
-exit code 2.
+exit code 2, and so does an OS error (a read-only or full disk, a folder that is a file): the line
+names the path and the reason.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import pkgutil
 
@@ -30,6 +32,30 @@ class DynslamGroup(TyperGroup):
         except FileNotFoundError as exc:
             typer.echo(f"error: file not found: {exc.filename or exc}", err=True)
             raise typer.Exit(code=2) from None
+        except OSError as exc:
+            typer.echo(f"error: {os_error_line(exc)}", err=True)
+            raise typer.Exit(code=2) from None
+
+
+_HINTS = {  # where the system's reason alone does not say what to fix
+    errno.ENOTDIR: "a part of the path is a file, not a folder",
+    errno.EEXIST: "something already exists there, e.g. a file where a folder is needed",
+    errno.EISDIR: "it is a folder",
+}
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for an OS error: the path(s) it concerns and the reason."""
+    reason = " ".join(str(exc.strerror or exc).split())
+    hint = _HINTS.get(exc.errno) if exc.errno is not None else None
+    if hint:
+        reason = f"{reason} ({hint})"
+    if exc.filename is None:
+        return reason if exc.strerror else f"{type(exc).__name__}: {reason}"
+    where = str(exc.filename)
+    if exc.filename2 is not None:
+        where = f"{where} -> {exc.filename2}"
+    return f"file system error at {where}: {reason}"
 
 
 def make_group(help: str) -> typer.Typer:  # noqa: A002

@@ -200,7 +200,7 @@ def render_preset(preset: str, out_dir: Path, cfg: SynthConfig, frames: int | No
     from tqdm import tqdm
 
     from dynslam_cli.synth.raycast import raycast
-    from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
+    from dynslam_cli.utils.io import atomic_path, default_mode, write_json_atomic, write_text_atomic
 
     start = time.perf_counter()
     n = int(cfg.frames if frames is None else frames)
@@ -225,8 +225,8 @@ def render_preset(preset: str, out_dir: Path, cfg: SynthConfig, frames: int | No
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
-    os.chmod(tmp, 0o755)
     try:
+        os.chmod(tmp, default_mode(folder=True))
         for sub in ("rgb", "depth", "instances", "dynamic"):
             (tmp / sub).mkdir()
         poses = []
@@ -316,11 +316,16 @@ def _replace_dir(tmp: Path, out_dir: Path) -> None:
     """Move the finished temp folder onto out_dir (an earlier scene there is replaced)."""
     if out_dir.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
-        os.replace(out_dir, old / "scene")
         try:
-            os.replace(tmp, out_dir)
+            os.replace(out_dir, old / "scene")
+            try:
+                os.replace(tmp, out_dir)
+            except BaseException:
+                os.replace(old / "scene", out_dir)
+                raise
         except BaseException:
-            os.replace(old / "scene", out_dir)
+            if not (old / "scene").exists():  # the earlier scene is back in place
+                shutil.rmtree(old, ignore_errors=True)
             raise
         shutil.rmtree(old, ignore_errors=True)
     else:

@@ -1,7 +1,10 @@
 """Atomic file output: write to a temporary name beside the target, then rename.
 
 A crash or an error half-way never leaves a truncated result file, and a file that already
-existed stays intact until the new one is complete.
+existed stays intact until the new one is complete.  New files get the mode an ordinary
+``open(..., "w")`` would give them (0666 less the umask); a file that is replaced keeps its mode.
+An OS error (read-only folder, full disk, a path through a file) names the target, not the
+temporary file.
 """
 
 from __future__ import annotations
@@ -9,9 +12,40 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import stat
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterator
+
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux /proc)."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:  # os.umask can only be read by setting it: set it straight back
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def default_mode(folder: bool = False) -> int:
+    """Mode of a new file (0666) or folder (0777) under the current umask."""
+    return (0o777 if folder else 0o666) & ~current_umask()
+
+
+def _with_path(exc: OSError, path: Path) -> OSError:
+    """The same OS error (same class by errno) naming ``path``."""
+    if exc.errno is None:
+        return exc
+    return OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
 
 
 @contextlib.contextmanager
@@ -23,15 +57,31 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{target.name}.", suffix=target.suffix if suffix is None else suffix,
-        dir=target.parent,
-    )
+    try:
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{target.name}.", suffix=target.suffix if suffix is None else suffix,
+            dir=target.parent,
+        )
+    except OSError as exc:
+        raise _with_path(exc, target) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        os.replace(tmp_path, target)
+        try:
+            old = target.stat(follow_symlinks=True)
+            mode = stat.S_IMODE(old.st_mode) if stat.S_ISREG(old.st_mode) else default_mode()
+        except OSError:
+            mode = default_mode()
+        try:
+            os.chmod(tmp_path, mode)
+            os.replace(tmp_path, target)
+        except OSError as exc:
+            raise _with_path(exc, target) from exc
+    except OSError as exc:
+        if exc.filename == str(tmp_path):  # writing the temporary file failed (disk full, ...)
+            raise _with_path(exc, target) from exc
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
