@@ -136,6 +136,91 @@ def test_yolo_seg_missing_model_message(tmp_path):
         YoloSegSegmenter("")
 
 
+# ---------------------------------------------------------------- ONNX models of the wrong kind
+def _onnx(path, outputs, inp=("images", [1, 3, 32, 32])):
+    """A tiny ONNX model: one float input and constant float outputs ``name: (shape, declared)``
+    (``declared`` None = the shape itself; strings in it are symbolic dimensions)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes, outs = [], []
+    for name, (shape, declared) in outputs.items():
+        value = numpy_helper.from_array(np.zeros(shape, np.float32), name=f"{name}_value")
+        nodes.append(helper.make_node("Constant", [], [name], value=value))
+        outs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, shape if declared is None else declared))
+    x = helper.make_tensor_value_info(inp[0], TensorProto.FLOAT, inp[1])
+    model = helper.make_model(helper.make_graph(nodes, "wrong", [x], outs),
+                              opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+@pytest.mark.parametrize("outputs, inp, why", [
+    ({"logits": ([1, 10], None)}, None, "1 output, not 2"),  # an image classifier
+    ({"output0": ([1, 37, 16], None), "output1": ([1, 32, 8], None)}, None, "rank 3 and 3"),
+    ({"output0": ([1, 36, 16], None), "output1": ([1, 32, 8, 8], None)}, None, "output0 has 36 channels"),
+    ({"output0": ([1, 37, 16], None), "output1": ([1, 32, 8, 8], None)}, ("x", [1, 32]), "input"),
+])
+def test_yolo_seg_wrong_model_kind(tmp_path, outputs, inp, why):
+    path = _onnx(tmp_path / "wrong.onnx", outputs, inp or ("images", [1, 3, 32, 32]))
+    with pytest.raises(DynslamError) as info:
+        YoloSegSegmenter(str(path))
+    msg = str(info.value)
+    assert str(path) in msg and why in msg and "\n" not in msg, msg
+    assert "output0 1×(4+C+32)×N" in msg and "output1 1×32×H×W" in msg
+    assert next(iter(outputs)) in msg  # what the model has
+
+
+def _onnx_symbolic(path):
+    """A model whose output0 has a symbolic channel count: 1×W×16 for a 1×3×H×W input (W = imgsz)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    def const(name, arr):
+        return helper.make_node("Constant", [], [name], value=numpy_helper.from_array(arr, name=f"{name}_v"))
+
+    nodes = [
+        helper.make_node("Shape", ["images"], ["shape"]),
+        const("s3", np.array([3], np.int64)), const("s4", np.array([4], np.int64)),
+        helper.make_node("Slice", ["shape", "s3", "s4"], ["w"]),
+        const("one", np.array([1], np.int64)),
+        helper.make_node("Concat", ["one", "w", "one"], ["reps"], axis=0),
+        const("row", np.zeros((1, 1, 16), np.float32)),
+        helper.make_node("Tile", ["row", "reps"], ["output0"]),
+        const("output1", np.zeros((1, 32, 8, 8), np.float32)),
+    ]
+    x = helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, "h", "w"])
+    outs = [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, "c", "n"]),
+            helper.make_tensor_value_info("output1", TensorProto.FLOAT, [1, 32, 8, 8])]
+    model = helper.make_model(helper.make_graph(nodes, "symbolic", [x], outs),
+                              opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+def test_yolo_seg_symbolic_shapes_checked_on_the_first_frame(tmp_path):
+    # output0's channel count is symbolic, so the model loads; the arrays it returns are checked on a frame
+    path = _onnx_symbolic(tmp_path / "dyn.onnx")
+    seg = YoloSegSegmenter(str(path), imgsz=20)
+    with pytest.raises(DynslamError, match=r"dyn\.onnx returned arrays 1×20×16 and 1×32×8×8; expected YOLOv8-seg"):
+        seg.segment(np.zeros((24, 32, 3), np.uint8))
+    # 4 + 1 class + 32 coefficients: no detection above the threshold, an empty segmentation
+    assert YoloSegSegmenter(str(path), imgsz=37).segment(np.zeros((24, 32, 3), np.uint8)).ids.max() == 0
+
+
+def test_onnx_encoder_wrong_model_kind(tmp_path):
+    from dynslam_cli.motion.encode_onnx import OnnxEncoder
+
+    path = _onnx(tmp_path / "vec.onnx", {"v": ([7], None)}, ("images", [1, 3, 32, 32]))
+    with pytest.raises(DynslamError, match=r"vec\.onnx output 'v' has rank 1; it has inputs images\[1×3×32×32\]"):
+        OnnxEncoder(str(path), input_size=32)
+    path = _onnx(tmp_path / "text.onnx", {"e": ([1, 8], None)}, ("tokens", [1, 77]))
+    with pytest.raises(DynslamError, match=r"text\.onnx is not a model of the expected kind.*tokens\[1×77\].*N×3×S×S"):
+        OnnxEncoder(str(path))
+
+
 # ---------------------------------------------------------------- geometric
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_geometric_person_in_front_of_wall(seed):

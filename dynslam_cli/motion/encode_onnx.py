@@ -15,7 +15,7 @@ import numpy as np
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.encode_base import (CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, crop_fill, l2n,
                                             masked_crops, normalise_batch)
-from dynslam_cli.motion.onnx_utils import ort_session, require_model
+from dynslam_cli.motion.onnx_utils import check_image_input, describe_io, ort_session, require_model
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,9 @@ PRESETS = {
     "blip": Preset(224, CLIP_MEAN, CLIP_STD, "", "auto", RECIPES["blip"]),
 }
 
+EXPECTED_IO = ("an image encoder: one N×3×S×S float input and a B×D embedding, B×T×D tokens or B×C×h×w "
+               "feature-map output")
+
 EXPECTED_FILES = {"clip": "clip_vitb32_visual.onnx", "dino": "dinov2_vits14.onnx", "blip": "blip2_vision.onnx"}
 
 
@@ -93,6 +96,7 @@ class OnnxEncoder:
         what = f"{preset} encoder (motion.encoder_model" + (f", e.g. {expected})" if expected else ")")
         path = require_model(model_path, what, f"export it with: {p.recipe}")
         self.session = ort_session(path, threads)
+        check_image_input(self.session, path, what, EXPECTED_IO)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
         shape = inp.shape
@@ -123,12 +127,23 @@ class OnnxEncoder:
             self.output = out
         else:
             raise DynslamError(f"{path} has no output '{out}'; its outputs: {', '.join(outs)}")
+        rank = len(next(o.shape or [] for o in self.session.get_outputs() if o.name == self.output))
+        if rank not in (0, 2, 3, 4):  # 0: shape not declared, checked on the dry run below
+            raise DynslamError(f"{what}: {path} output '{self.output}' has rank {rank}; it has "
+                               f"{describe_io(self.session)}; expected {EXPECTED_IO}")
         self.pooling = pooling or p.pooling
         if self.pooling not in ("auto", "mean", "cls", "max"):
             raise DynslamError(f"motion.encoder_pooling must be auto, mean, cls or max, got '{self.pooling}'")
         self.margin, self.batch = margin, max(1, int(batch))
         self.fill = crop_fill(self.mean, background)
-        self.dim = int(self._run(np.zeros((1, 3, self.size, self.size), np.float32)).shape[1])
+        try:
+            self.dim = int(self._run(np.zeros((1, 3, self.size, self.size), np.float32)).shape[1])
+        except DynslamError as exc:
+            raise DynslamError(f"{what}: {path}: {exc}") from None
+        except Exception as exc:  # onnxruntime raises its own exception types
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise DynslamError(f"{what}: {path} fails on a {self.size}×{self.size} image batch ({msg}); it has "
+                               f"{describe_io(self.session)}; expected {EXPECTED_IO}") from None
 
     @classmethod
     def from_config(cls, mcfg) -> "OnnxEncoder":

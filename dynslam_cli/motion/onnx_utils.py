@@ -1,4 +1,4 @@
-"""onnxruntime sessions, the model cache folder, and model-file checks."""
+"""onnxruntime sessions, the model cache folder, and model-file checks (file, inputs, outputs)."""
 
 from __future__ import annotations
 
@@ -43,3 +43,31 @@ def ort_session(path: str | Path, threads: int = 0):
     except Exception as exc:  # onnxruntime raises its own exception types
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DynslamError(f"cannot load ONNX model {path}: {msg}") from None
+
+
+def _dims(shape) -> str:
+    return "×".join(str(d) if isinstance(d, int) else (str(d) if d else "?") for d in (shape or [])) or "scalar"
+
+
+def describe_io(session) -> str:
+    """``inputs images[1×3×640×640]; outputs output0[1×37×8400], output1[1×32×160×160]``."""
+    ins = ", ".join(f"{i.name}[{_dims(i.shape)}]" for i in session.get_inputs()) or "none"
+    outs = ", ".join(f"{o.name}[{_dims(o.shape)}]" for o in session.get_outputs()) or "none"
+    return f"inputs {ins}; outputs {outs}"
+
+
+def check_image_input(session, path, what: str, expected: str) -> None:
+    """The first input must be a float N×3×H×W image batch (dimensions may be symbolic)."""
+    ins = session.get_inputs()
+    inp = ins[0] if ins else None
+    shape = list(inp.shape or []) if inp is not None else []
+    ok = (inp is not None and len(shape) == 4 and fixed(shape[1]) in (3, None)
+          and inp.type == "tensor(float)")
+    if not ok:
+        raise DynslamError(f"{what}: {path} is not a model of the expected kind: it has {describe_io(session)} "
+                           f"(input types: {', '.join(i.type for i in ins) or 'none'}); expected {expected}")
+
+
+def fixed(d) -> int | None:
+    """A fixed dimension, or None for a symbolic one."""
+    return d if isinstance(d, int) and d > 0 else None

@@ -12,9 +12,13 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from dynslam_cli.motion.onnx_utils import ort_session, require_model
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.motion.onnx_utils import check_image_input, describe_io, fixed, ort_session, require_model
 from dynslam_cli.motion.segment_base import masks_to_ids, prune_parts
 from dynslam_cli.motion.types import Segmentation
+
+EXPECTED_IO = ("YOLOv8-seg / FastSAM outputs: output0 1×(4+C+32)×N (boxes, C class scores, 32 mask "
+               "coefficients) and output1 1×32×H×W mask prototypes, from one 1×3×H×W float input")
 
 FASTSAM_RECIPE = ("export it with `pip install ultralytics` then "
                   "`python -c \"from ultralytics import FastSAM; FastSAM('FastSAM-s.pt').export(format='onnx', imgsz=640)\"` "
@@ -135,6 +139,36 @@ def decode(out0: np.ndarray, protos: np.ndarray, orig_hw: tuple[int, int], input
     return boxes.astype(np.float32), score.astype(np.float32), cls.astype(np.int64), masks
 
 
+def _not_yolo_seg(session, path, why: str) -> DynslamError:
+    return DynslamError(f"yolo-seg segmenter (motion.segmenter_model): {path} is not a YOLOv8-seg-format model "
+                        f"({why}): it has {describe_io(session)}; expected {EXPECTED_IO}")
+
+
+def check_outputs(session, path) -> None:
+    """The model's declared inputs and outputs must be those of a YOLOv8-seg export (symbolic
+    dimensions pass; the arrays are checked again on the first frame)."""
+    check_image_input(session, path, "yolo-seg segmenter (motion.segmenter_model)", EXPECTED_IO)
+    outs = session.get_outputs()
+    if len(outs) < 2:
+        raise _not_yolo_seg(session, path, f"{len(outs)} output{'s' if len(outs) != 1 else ''}, not 2")
+    s0, s1 = list(outs[0].shape or []), list(outs[1].shape or [])
+    if len(s0) != 3 or len(s1) != 4:
+        raise _not_yolo_seg(session, path, f"outputs of rank {len(s0)} and {len(s1)}, not 3 and 4")
+    nm, ch = fixed(s1[1]), fixed(s0[1])
+    if nm is not None and ch is not None and ch < 4 + 1 + nm:
+        raise _not_yolo_seg(session, path, f"output0 has {ch} channels, too few for 4 box values, a class "
+                                           f"score and {nm} mask coefficients")
+
+
+def check_output_arrays(out0: np.ndarray, protos: np.ndarray, path) -> None:
+    """The arrays of one inference, for models whose declared shapes are symbolic."""
+    if out0.ndim != 3 or protos.ndim != 4 or out0.shape[0] != 1 or protos.shape[0] != 1 \
+            or out0.shape[1] < 5 + protos.shape[1]:
+        raise DynslamError(f"yolo-seg segmenter (motion.segmenter_model): {path} returned arrays "
+                           f"{'×'.join(map(str, out0.shape))} and {'×'.join(map(str, protos.shape))}; "
+                           f"expected {EXPECTED_IO}")
+
+
 class YoloSegSegmenter:
     """Any ONNX model with YOLOv8-seg outputs (YOLOv8-seg with 80 COCO classes, FastSAM with 1)."""
 
@@ -145,6 +179,7 @@ class YoloSegSegmenter:
         path = require_model(model_path, "yolo-seg segmenter (motion.segmenter_model)", FASTSAM_RECIPE)
         self.session = ort_session(path, threads)
         self.path = path
+        check_outputs(self.session, path)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
         shape = inp.shape
@@ -170,6 +205,7 @@ class YoloSegSegmenter:
         img, r, pad = letterbox(rgb, self.input_hw)
         x = np.ascontiguousarray(img.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0
         out0, protos = self.session.run(None, {self.input_name: x})[:2]
+        check_output_arrays(out0, protos, self.path)
         return decode(out0, protos, rgb.shape[:2], self.input_hw, r, pad, self.conf, self.iou,
                       True, self.max_det)
 
