@@ -30,21 +30,27 @@ def register(app: typer.Typer) -> None:
         dry_run: bool = typer.Option(False, "--dry-run", help="Print the cells (one per line) and stop."),
         executor: str = typer.Option("local", "--executor", help="local (process pool) or ray."),
         jobs: int = typer.Option(1, "--jobs", help="Local executor: parallel cells (threads divided among them)."),
+        threads: Optional[int] = typer.Option(None, "--threads", help="run.threads of each cell (default: the CPUs "
+                                              "divided by --jobs, or --cpus-per-cell with Ray)."),
         address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: a local instance)."),
         num_cpus: Optional[int] = typer.Option(None, "--num-cpus", help="Ray: CPUs of the local instance (default all)."),
         cpus_per_cell: float = typer.Option(1.0, "--cpus-per-cell", help="Ray: num_cpus of each cell's task."),
         gpus_per_cell: float = typer.Option(0.0, "--gpus-per-cell", help="Ray: num_gpus of each cell's task."),
     ) -> None:
-        """Run a grid of configurations, one evaluated run per cell; finished cells are skipped."""
+        """Run a grid of configurations, one evaluated run per cell; finished cells are skipped.
+
+        A cell's id ends in a hash of everything that changes its result (resolved config, sequence,
+        frame cut, seed): other options make other cells, the same options resume the grid.
+        """
         from dynslam_cli.eval import ablate as ab
 
         cells = ab.build_grid(ab.split_list(seq), ab.split_list(mode), ab.split_list(encoder),
                               ab.split_list(segmenter), ab.split_list(replay), ab.split_list(prior),
                               ab.split_list(seeds), str(prior_file) if prior_file else None, list(sets or []))
-        ab.validate_cells(cells, str(config) if config else None, str(data_root) if data_root else None, frames)
+        cells = ab.key_cells(cells, str(config) if config else None, str(data_root) if data_root else None, frames)
         if dry_run:
             for cell in cells:
-                done = ab.cell_done(results / name / cell.id)
+                done = ab.cell_done(results / name / cell.id, cell.key)
                 typer.echo(f"{cell.id}{'  (done, skipped)' if done else ''}  {' '.join(cell.overrides)}")
             return
 
@@ -56,7 +62,7 @@ def register(app: typer.Typer) -> None:
         res = ab.ablate(cells, name, results, executor=executor, jobs=jobs, address=address,
                         config_file=str(config) if config else None, data_root=str(data_root) if data_root else None,
                         frames=frames, cpus_per_cell=cpus_per_cell, gpus_per_cell=gpus_per_cell,
-                        num_cpus=num_cpus, on_done=progress)
+                        num_cpus=num_cpus, on_done=progress, threads=threads)
         typer.echo(res.summary_md, nl=False)
         typer.echo(f"{len(res.cells)} cells, {res.failed} failed; summary in {res.root}/summary.md")
         if res.failed:

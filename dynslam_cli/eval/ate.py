@@ -172,9 +172,13 @@ def compute_ate(est_file: str | Path, gt_file: str | Path, align: str = "se3",
 
 
 def evaluate_run_ate(run_dir: str | Path, gt: Optional[str | Path] = None, align: Optional[str] = None,
-                     max_diff: Optional[float] = None, plot: bool = True) -> AteResult:
-    """ATE of a run folder: reads traj_est.txt, writes ate.json (and ate.png)."""
-    run_dir = runs.require_run_dir(run_dir)
+                     max_diff: Optional[float] = None, plot: bool = True,
+                     include_incomplete: bool = False) -> AteResult:
+    """ATE of a run folder: reads traj_est.txt, writes ate.json (and ate.png).
+
+    A run whose run.json is not completed is an error unless ``include_incomplete``.
+    """
+    run_dir = runs.require_completed(run_dir, include_incomplete)
     cfg = runs.eval_config_for(run_dir)
     est_file = run_dir / "traj_est.txt"
     if not est_file.is_file():

@@ -141,9 +141,13 @@ def has_masks(run_dir: Path) -> bool:
     return d.is_dir() and any(d.glob("*.png"))
 
 
-def evaluate_run_masks(run_dir: str | Path, gt_dir: Optional[str | Path] = None) -> MaskResult:
-    """Mask metrics of a synthetic run folder; writes mask_metrics.json."""
-    run_dir = runs.require_run_dir(run_dir)
+def evaluate_run_masks(run_dir: str | Path, gt_dir: Optional[str | Path] = None,
+                       include_incomplete: bool = False) -> MaskResult:
+    """Mask metrics of a synthetic run folder; writes mask_metrics.json.
+
+    A run whose run.json is not completed is an error unless ``include_incomplete``.
+    """
+    run_dir = runs.require_completed(run_dir, include_incomplete)
     if gt_dir is None:
         sp = runs.sequence_path(run_dir)
         if sp is None or not (sp / "dynamic").is_dir():

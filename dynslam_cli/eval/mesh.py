@@ -228,9 +228,12 @@ def _first_poses(run_dir: Path, gt_file: Optional[Path], max_diff: float):
 
 
 def evaluate_run_mesh(run_dir: str | Path, ref: Optional[str | Path] = None, cull: bool = True,
-                      gt: Optional[str | Path] = None) -> MeshResult:
-    """Mesh metrics of a run folder's mesh.ply; writes mesh_metrics.json."""
-    run_dir = runs.require_run_dir(run_dir)
+                      gt: Optional[str | Path] = None, include_incomplete: bool = False) -> MeshResult:
+    """Mesh metrics of a run folder's mesh.ply; writes mesh_metrics.json.
+
+    A run whose run.json is not completed is an error unless ``include_incomplete``.
+    """
+    run_dir = runs.require_completed(run_dir, include_incomplete)
     meta = runs.read_run_json(run_dir)
     cfg = runs.eval_config_for(run_dir)
     est_file = run_dir / "mesh.ply"

@@ -158,13 +158,89 @@ def camera_model(run_dir: Path, meta: Optional[dict] = None) -> tuple[list[float
     return [float(v) for v in intr], width, height
 
 
-def is_finished(run_dir: Path) -> bool:
-    """A run whose run.json says completed and whose ate.json exists."""
+def incomplete_reason(run_dir: Path, include_incomplete: bool = False) -> Optional[str]:
+    """None when the run counts as complete, else one line saying why it does not.
+
+    The one completeness check of every evaluator (eval-ate, eval-mesh, eval-masks, tables,
+    ablate): a run is complete when its ``run.json`` says ``"status": "completed"``.  A running,
+    failed or interrupted run, one without run.json and one whose run.json cannot be read are
+    incomplete; with ``include_incomplete`` only a missing folder is.  The caller decides whether
+    the line is an error (a run folder given on its own) or a warning (one folder of many).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return f"run folder not found: {run_dir}"
+    if include_incomplete:
+        return None
     try:
         meta = read_run_json(run_dir)
     except DynslamError:
-        return False
-    return meta.get("status") == "completed" and (Path(run_dir) / "ate.json").is_file()
+        why = "run.json is corrupt"
+    else:
+        status = meta.get("status")
+        if status == "completed":
+            return None
+        why = ("no run.json" if not (run_dir / "run.json").is_file()
+               else f"run.json status: {status if isinstance(status, str) else repr(status)}")
+    return f"run {run_dir} is not completed ({why}); pass --include-incomplete to use it anyway"
+
+
+def require_completed(run_dir: str | Path, include_incomplete: bool = False) -> Path:
+    """The run folder as a Path; DynslamError (see :func:`incomplete_reason`) unless it is complete."""
+    reason = incomplete_reason(Path(run_dir), include_incomplete)
+    if reason is not None:
+        raise DynslamError(reason)
+    return Path(run_dir)
+
+
+def select_completed(run_dirs, include_incomplete: bool = False) -> tuple[list[Path], list[str]]:
+    """``(complete run folders, one warning line per skipped folder)``; a missing folder is an error."""
+    keep, warnings = [], []
+    for d in run_dirs:
+        d = require_run_dir(d)
+        reason = incomplete_reason(d, include_incomplete)
+        if reason is None:
+            keep.append(d)
+        else:
+            warnings.append(f"skipped: {reason}")
+    return keep, warnings
+
+
+def is_finished(run_dir: Path) -> bool:
+    """A completed run (see :func:`incomplete_reason`) whose ate.json exists."""
+    return incomplete_reason(run_dir) is None and (Path(run_dir) / "ate.json").is_file()
+
+
+def is_number(v: Any) -> bool:
+    """A JSON number (int or float, not a bool); NaN and inf count (the tables drop them)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def read_result_json(path: Path, numbers: tuple = (), number_maps: tuple = ()) -> tuple[dict, Optional[str]]:
+    """``(data, problem)`` of a result file (ate.json, mesh_metrics.json, timing.json, ...).
+
+    ``({}, None)`` when the file is absent.  ``({}, one line naming the file)`` when it is not
+    readable JSON, not an object, a key of ``numbers`` holds something other than a number or
+    null, or a key of ``number_maps`` something other than an object of numbers: the caller skips
+    the file (with a warning) instead of failing on one bad file among many.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return {}, None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return {}, f"{path}: not readable JSON ({' '.join(str(exc).split())})"
+    if not isinstance(data, dict):
+        return {}, f"{path}: expected a JSON object, got {type(data).__name__}"
+    for k in numbers:
+        if data.get(k) is not None and not is_number(data[k]):
+            return {}, f"{path}: '{k}' is not a number ({json.dumps(data[k])[:40]})"
+    for k in number_maps:
+        m = data.get(k)
+        if m is not None and not (isinstance(m, dict) and all(is_number(v) for v in m.values())):
+            return {}, f"{path}: '{k}' is not an object of numbers ({json.dumps(m)[:40]})"
+    return data, None
 
 
 def finite_or_error(arr: np.ndarray, what: str) -> np.ndarray:
