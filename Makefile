@@ -11,12 +11,12 @@ install: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q -e ".[test]"
+	$(PY) -m pip install -q -e ".[test,view]"
 	touch $@
 
 # The tests also cover the optional Ray executor, so they install the `ray` extra.
 $(VENV)/.installed-ray: $(VENV)/.installed
-	$(PY) -m pip install -q -e ".[test,ray]"
+	$(PY) -m pip install -q -e ".[test,view,ray]"
 	touch $@
 
 # The test suite; HOME goes to a temp folder because evo and onnxruntime write there on import.

@@ -32,12 +32,14 @@ DATASET_FILES = {"tum": "tum.yaml", "bonn": "bonn.yaml", "synth": "synth.yaml"}
 
 
 def configs_dir() -> Path:
-    """The ``configs/`` folder: beside the package in a checkout, else inside the package."""
-    here = Path(__file__).resolve().parent
-    for cand in (here.parents[1] / "configs", here / "files"):
+    """The ``configs/`` folder: the checkout's (source checkout or editable install), else the copy
+    a built wheel ships inside the package as ``dynslam_cli/_configs`` (see setup.py)."""
+    pkg = Path(__file__).resolve().parents[1]
+    cands = (pkg.parent / "configs", pkg / "_configs")
+    for cand in cands:
         if (cand / "base.yaml").is_file():
             return cand
-    raise DynslamError(f"configs folder with base.yaml not found near {here}")
+    raise DynslamError(f"configs folder with base.yaml not found: looked in {cands[0]} and {cands[1]}")
 
 
 def _read_yaml(path: Path) -> dict:
