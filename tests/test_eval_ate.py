@@ -243,3 +243,58 @@ def test_real_bonn_groundtruth_against_evo_ape(tmp_path, bonn_clip):
     assert r.rmse_m == pytest.approx(stats["rmse"], abs=1e-6)
     # this clip barely moves: a still camera scores only ~0.09 m
     assert r.matched == 150 and 0.05 < r.rmse_still_m < 0.15 and r.rmse_still_m > 2 * r.rmse_m
+
+
+def _set_status(run_dir: Path, status):
+    meta = json.loads((run_dir / "run.json").read_text())
+    if status is None:
+        meta.pop("status")
+    else:
+        meta["status"] = status
+    (run_dir / "run.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("status", ["running", "failed", "interrupted", None])
+def test_cli_eval_ate_refuses_incomplete_run(tmp_path, gt_file, status):
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    run = _fake_run(tmp_path / "run", gt_file)
+    (run / "ate.json").write_text('{"rmse_m": 9.0}')  # from an earlier evaluation: must stay as it is
+    _set_status(run, status)
+    res = CliRunner().invoke(app, ["eval-ate", str(run), "--no-plot"])
+    assert res.exit_code == 2
+    assert res.output.strip() == (f"error: run {run} is not completed (run.json status: {status}); "
+                                  "pass --include-incomplete to use it anyway")
+    assert (run / "ate.json").read_text() == '{"rmse_m": 9.0}'
+    res = CliRunner().invoke(app, ["eval-ate", str(run), "--no-plot", "--include-incomplete"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "ate.json").read_text())["rmse_m"] < 0.1
+    (run / "run.json").unlink()  # a folder without run.json is not a completed run either
+    res = CliRunner().invoke(app, ["eval-ate", str(run), "--no-plot"])
+    assert res.exit_code == 2 and "(no run.json)" in res.output
+
+
+def test_cli_eval_ate_skips_incomplete_among_several(tmp_path, gt_file):
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    ok = _fake_run(tmp_path / "ok", gt_file)
+    bad = _fake_run(tmp_path / "bad", gt_file, seed=1)
+    _set_status(bad, "failed")
+    res = CliRunner().invoke(app, ["eval-ate", str(ok), str(bad), "--no-plot"])
+    assert res.exit_code == 0, res.output
+    warnings = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert warnings == [f"warning: skipped: run {bad} is not completed (run.json status: failed); "
+                        "pass --include-incomplete to use it anyway"]
+    assert (ok / "ate.json").is_file() and not (bad / "ate.json").exists()
+    res = CliRunner().invoke(app, ["eval-ate", str(ok), str(bad), "--no-plot", "--include-incomplete"])
+    assert res.exit_code == 0 and (bad / "ate.json").is_file() and "warning" not in res.output
+    _set_status(ok, "running")
+    before = (ok / "ate.json").read_text()
+    res = CliRunner().invoke(app, ["eval-ate", str(ok), str(bad), "--no-plot"])
+    assert res.exit_code == 2 and res.output.strip().splitlines()[-1] == (
+        "error: none of the 2 run folders is completed; pass --include-incomplete to evaluate them anyway")
+    assert (ok / "ate.json").read_text() == before

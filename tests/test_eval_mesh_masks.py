@@ -186,3 +186,34 @@ def test_cli_eval_mesh_and_masks_errors(tmp_path):
     (run / "mesh.ply").write_bytes(b"not a ply")
     res = CliRunner().invoke(app, ["eval-mesh", str(run)])
     assert res.exit_code == 2 and "mesh" in res.output
+
+
+def test_cli_eval_mesh_and_masks_refuse_incomplete_runs(tmp_path):
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    run = synth_run(tmp_path, np.eye(4))
+    _png(run / "masks" / "0.000000.png", np.zeros((48, 64), bool))
+    _png(tmp_path / "scene" / "dynamic" / "0.000000.png", np.zeros((48, 64), bool))
+    meta = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**meta, "status": "interrupted"}))
+    for cmd, out in (("eval-mesh", "mesh_metrics.json"), ("eval-masks", "mask_metrics.json")):
+        res = CliRunner().invoke(app, [cmd, str(run), "--no-cull"] if cmd == "eval-mesh" else [cmd, str(run)])
+        assert res.exit_code == 2 and not (run / out).exists()
+        assert res.output.strip() == (f"error: run {run} is not completed (run.json status: interrupted); "
+                                      "pass --include-incomplete to use it anyway")
+        res = CliRunner().invoke(app, [*([cmd, str(run), "--no-cull"] if cmd == "eval-mesh" else [cmd, str(run)]),
+                                       "--include-incomplete"])
+        assert res.exit_code == 0, res.output
+        assert (run / out).is_file()
+    # several folders: the incomplete one is skipped with a warning, the others are evaluated
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "run.json").write_text(json.dumps({"status": "running"}))
+    (run / "run.json").write_text(json.dumps(meta))
+    res = CliRunner().invoke(app, ["eval-masks", str(run), str(other)])
+    assert res.exit_code == 0, res.output
+    assert res.stderr.strip() == (f"warning: skipped: run {other} is not completed (run.json status: running); "
+                                  "pass --include-incomplete to use it anyway")
+    assert not (other / "mask_metrics.json").exists()
