@@ -1,18 +1,29 @@
 """Running a sequence end to end into a run folder (layout in DEVELOPING.md).
 
-``run_sequence`` opens the sequence, builds the SLAM system, processes every frame (static mode:
-Co-SLAM; dynamic mode: the motion module of ``run/dynamic.py`` decides which pixels are static),
-writes checkpoints every ``run.checkpoint_every`` frames and at the end the trajectory, mesh,
-timing and run.json.  Every file is written atomically; run.json says ``completed`` only at the end.
+``run_sequence`` opens the sequence, takes the run folder (``run/folder.py``: a lock, and a refusal
+before anything is written when the folder already holds a run, unless ``overwrite`` or ``resume``),
+builds the SLAM system, processes every frame (static mode: Co-SLAM; dynamic mode: the motion module
+of ``run/dynamic.py`` decides which pixels are static), writes checkpoints every
+``run.checkpoint_every`` frames and at the end the trajectory, mesh, timing and run.json.  Every file
+is written atomically; run.json says ``completed`` only after every other file is written, ``failed``
+after an error and ``interrupted`` after Ctrl-C or ``run.stop_after``.
+
+A checkpoint records what it belongs to (:func:`run_identity`: the sequence with a hash of its
+frame list, the flattened config, the code version); ``resume`` refuses a checkpoint whose record
+differs and names the difference.  Checkpoints of older versions, which lack the record, are refused
+(they cannot be checked): start such a run again with ``overwrite``.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
+import os
 import platform
 import random
+import subprocess
 import sys
-import time
 import traceback
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -22,6 +33,7 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.errors import DynslamError
+from dynslam_cli.run.folder import FolderLock, claim_folder, read_status
 from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
 from dynslam_cli.utils.threads import seed_everything, set_threads
 
@@ -61,12 +73,7 @@ def versions() -> dict:
     import torch
 
     out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__}
-    try:
-        from importlib.metadata import version
-
-        out["dynslam"] = version("dynslam")
-    except Exception:
-        pass
+    out["dynslam"] = code_version()
     try:
         import numba
 
@@ -114,10 +121,91 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
     return write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def _save_checkpoint(path: Path, slam, next_frame: int, timings: dict, cfg_yaml: str, dynamic=None) -> None:
+@functools.lru_cache(maxsize=None)
+def code_version() -> str:
+    """The package version, plus ``git describe --always --dirty --tags`` of the source checkout when
+    the package runs from one (worked out once per process)."""
+    from dynslam_cli import __version__ as ver
+
+    root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():
+        return ver
+    try:
+        r = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--tags"],
+                           capture_output=True, text=True, timeout=10,
+                           env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"})  # never take the index lock
+    except (OSError, subprocess.SubprocessError):
+        return ver
+    desc = r.stdout.strip()
+    return f"{ver}+git.{desc}" if r.returncode == 0 and desc else ver
+
+
+def sequence_identity(spec: str, seq) -> dict:
+    """What a run's sequence is: spec, dataset, name and a hash of the cut frame list (timestamps and
+    rgb/depth file names)."""
+    h = hashlib.sha256()
+    for stamp, rec in zip(seq.stamps, seq.records, strict=True):
+        h.update(f"{stamp} {Path(rec.rgb).name} {Path(rec.depth).name}\n".encode())
+    return {"spec": str(spec), "dataset": seq.dataset, "name": seq.name, "frames": len(seq),
+            "frames_sha256": h.hexdigest()}
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def run_identity(spec: str, seq, cfg) -> dict:
+    """What a checkpoint belongs to: the sequence, the flattened resolved config, the code version."""
+    from dynslam_cli.config.loader import config_to_dict
+
+    return {"sequence": sequence_identity(spec, seq), "config": flatten(config_to_dict(cfg)),
+            "code": code_version()}
+
+
+# Keys that say when a run stops or saves and where files live, not what it computes: free on --resume.
+RESUME_FREE_KEYS = ("run.stop_after", "run.checkpoint_every", "run.keep_checkpoint", "run.results_root", "data.root")
+_ABSENT = "<absent>"
+
+
+def _show(v) -> str:
+    try:
+        return json.dumps(v)
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def identity_mismatch(old: dict, new: dict) -> Optional[str]:
+    """The first difference between two :func:`run_identity` records (sequence, config, code), or None."""
+    so, sn = old.get("sequence") or {}, new["sequence"]
+    name_old, name_new = f"{so.get('dataset')}/{so.get('name')}", f"{sn['dataset']}/{sn['name']}"
+    if name_old != name_new:
+        return f"sequence {sn['spec']} differs (old {name_old}, new {name_new})"
+    if so.get("frames_sha256") != sn["frames_sha256"]:
+        return (f"sequence {sn['spec']} differs (old {so.get('frames')} frames with list hash "
+                f"{str(so.get('frames_sha256'))[:12]}, new {sn['frames']} frames with {sn['frames_sha256'][:12]})")
+    co, cn = old.get("config") or {}, new["config"]
+    diff = [k for k in sorted(set(co) | set(cn))
+            if k not in RESUME_FREE_KEYS and co.get(k, _ABSENT) != cn.get(k, _ABSENT)]
+    if diff:
+        k = diff[0]
+        more = f" and {len(diff) - 1} more ({', '.join(diff[1:4])})" if len(diff) > 1 else ""
+        return f"config key {k} differs (old {_show(co.get(k, _ABSENT))}, new {_show(cn.get(k, _ABSENT))}){more}"
+    if old.get("code") != new["code"]:
+        return f"code version differs (old {old.get('code')}, new {new['code']})"
+    return None
+
+
+def _save_checkpoint(path: Path, slam, next_frame: int, timings: dict, identity: dict, dynamic=None) -> None:
     import torch
 
-    state = {"slam": slam.state_dict(), "next_frame": next_frame, "timings": timings, "config": cfg_yaml,
+    state = {"identity": identity, "slam": slam.state_dict(), "next_frame": next_frame, "timings": timings,
              "torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state(), "py_rng": random.getstate(),
              "dynamic": None if dynamic is None else dynamic.state_dict()}
     with atomic_path(path) as tmp:
@@ -128,17 +216,40 @@ def _load_checkpoint(path: Path) -> dict:
     import torch
 
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         raise DynslamError(f"cannot read checkpoint {path}: {exc}") from None
+    if not isinstance(state, dict):
+        raise DynslamError(f"cannot read checkpoint {path}: not a dynslam checkpoint")
+    return state
 
 
-def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = False,
+def resume_state(path: Path, identity: dict) -> dict:
+    """The checkpoint at ``path`` when it belongs to ``identity``; else a DynslamError naming the difference."""
+    state = _load_checkpoint(path)
+    old = state.get("identity")
+    if not isinstance(old, dict):
+        raise DynslamError(f"--resume: {path} was written by an older dynslam and does not record its sequence, "
+                           f"config and code version, so it cannot be checked; start again with --overwrite")
+    why = identity_mismatch(old, identity)
+    if why:
+        raise DynslamError(f"--resume: {why} from the checkpoint in {path.parent}; resume with the same sequence "
+                           f"and options, or start again with --overwrite")
+    return state
+
+
+def _say(progress: bool, msg: str) -> None:
+    if progress:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = False, overwrite: bool = False,
                  progress: bool = True) -> RunResult:
-    """Run SLAM on sequence ``spec`` with the resolved config ``cfg``; see the module docstring."""
-    import torch
+    """Run SLAM on sequence ``spec`` with the resolved config ``cfg``; see the module docstring.
 
-    from dynslam_cli.config.loader import config_to_yaml, save_config
+    ``out_dir`` defaults to ``run.results_root/<dataset>/<name>/<mode>``.  A folder that already holds
+    a run is refused unless ``overwrite`` (its run files are deleted first) or ``resume``.
+    """
     from dynslam_cli.data.open import open_sequence
 
     mode = cfg.run.mode
@@ -147,111 +258,169 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
     device = select_device(cfg.run.device)
     threads = set_threads(cfg.run.threads)
     seq = open_sequence(spec, cfg, progress=progress)
-    n = len(seq)
-    if n == 0:
+    if len(seq) == 0:
         raise DynslamError(f"sequence {spec} has no frames (after start/frames/stride)")
-    variant = mode
-    out = Path(out_dir) if out_dir is not None else default_out_dir(cfg, seq.dataset, seq.name, variant)
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "checkpoint.pt"
-    run_json = out / "run.json"
-    cfg_yaml = config_to_yaml(cfg)
-    state = None
-    if resume:
-        if not ckpt.is_file():
-            raise DynslamError(f"--resume: no checkpoint.pt in {out}")
-        state = _load_checkpoint(ckpt)
-        if state.get("config") != cfg_yaml:
-            raise DynslamError(f"--resume: the config differs from the checkpoint's in {out} (resume with the same options)")
-    started = _now()
-    meta = {
-        "status": "running",
-        "sequence": {"spec": spec, "dataset": seq.dataset, "name": seq.name, "path": str(Path(seq.path).resolve()),
-                     "groundtruth": None if seq.groundtruth_file is None else str(Path(seq.groundtruth_file).resolve())},
-        "mode": mode, "variant": variant, "frames": n, "device": str(device), "seed": int(cfg.run.seed),
-        "threads": threads, "versions": versions(), "started": started, "finished": None, "error": None,
-    }
-    if resume and run_json.is_file():
+    out = Path(out_dir) if out_dir is not None else default_out_dir(cfg, seq.dataset, seq.name, mode)
+    identity = run_identity(spec, seq, cfg)
+    with FolderLock(out):
+        claim_folder(out, resume=resume, overwrite=overwrite)  # refuses before anything is written
+        state = resume_state(out / "checkpoint.pt", identity) if resume else None
+        run = _Run(spec, cfg, seq, out, device, threads, identity, progress)
+        return run.execute(state)
+
+
+class _Run:
+    """One call of :func:`run_sequence` once the folder is ours: run.json, the frames, the outputs."""
+
+    def __init__(self, spec, cfg, seq, out: Path, device, threads: int, identity: dict, progress: bool):
+        self.cfg, self.seq, self.out, self.device, self.identity, self.progress = cfg, seq, out, device, identity, progress
+        self.n = len(seq)
+        self.ckpt, self.run_json = out / "checkpoint.pt", out / "run.json"
+        self.meta = {
+            "status": "running",
+            "sequence": {"spec": spec, "dataset": seq.dataset, "name": seq.name,
+                         "path": str(Path(seq.path).resolve()),
+                         "groundtruth": None if seq.groundtruth_file is None
+                         else str(Path(seq.groundtruth_file).resolve()),
+                         "frames_sha256": identity["sequence"]["frames_sha256"]},
+            "mode": cfg.run.mode, "variant": cfg.run.mode, "frames": self.n, "device": str(device),
+            "seed": int(cfg.run.seed), "threads": threads, "versions": versions(), "started": _now(),
+            "finished": None, "error": None,
+        }
+        self.slam = self.loop = self.bar = None
+        self.timings: dict = {}
+
+    def execute(self, state: Optional[dict]) -> RunResult:
+        from dynslam_cli.config.loader import save_config
+
+        if state is not None:
+            old = (read_status(self.out) or {}).get("started")
+            self.meta["started"] = old or self.meta["started"]
+        save_config(self.cfg, self.out / "config.yaml")
+        write_json_atomic(self.run_json, self.meta)
         try:
-            meta["started"] = json.loads(run_json.read_text()).get("started", started)
-        except (OSError, ValueError):
-            pass
-    save_config(cfg, out / "config.yaml")
-    write_json_atomic(run_json, meta)
+            start = self._build(state)
+            done = self._frames(start)
+            if done < self.n:
+                processed = done - start
+                self.meta.update(status="interrupted", error=f"stopped after {processed} frames (run.stop_after)")
+                write_json_atomic(self.run_json, self.meta)
+                return RunResult("interrupted", self.out, done, 0.0, {"run": self.run_json, "checkpoint": self.ckpt})
+            fps, paths = self._finish()
+            # last: run.json says completed only once every other file is written
+            self.meta.update(status="completed", finished=_now(), frames=self.n)
+            write_json_atomic(self.run_json, self.meta)
+            return RunResult("completed", self.out, self.n, fps, paths)
+        except BaseException as exc:
+            self._close_bar()
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            err = str(exc) if isinstance(exc, DynslamError) else f"{type(exc).__name__}: {exc}"
+            self.meta.update(status="interrupted" if interrupted else "failed", finished=_now(),
+                             error="interrupted (Ctrl-C or SIGTERM)" if interrupted else err)
+            try:
+                write_json_atomic(self.run_json, self.meta)
+            except OSError:
+                pass
+            if not isinstance(exc, (DynslamError, KeyboardInterrupt)):
+                traceback.print_exc(file=sys.stderr)
+            raise
 
-    from dynslam_cli.slam.system import SLAM
+    def _build(self, state: Optional[dict]) -> int:
+        """The SLAM system (and motion loop), restored from ``state`` when resuming; the first frame to run."""
+        import torch
 
-    seed_everything(int(cfg.run.seed))
-    slam = SLAM(cfg, seq.intrinsics, device, bounds=sequence_bounds(cfg, seq))
-    loop = None
-    if mode == "dynamic":
-        from dynslam_cli.run.dynamic import DynamicLoop
+        from dynslam_cli.slam.system import SLAM
 
-        loop = DynamicLoop(cfg, seq.intrinsics, slam, device, out / "masks" if cfg.run.save_masks else None)
-    timings: dict = {"track": [], "map": [], "frame": []}
-    if loop is not None:
-        timings = {k: [] for k in ("segment", "encode", "classify", "track", "render", "check", "update", "map", "frame")}
-    updates_path = out / "classifier_updates.jsonl"
-    start_frame = 0
-    if state is not None:
-        slam.load_state_dict(state["slam"])
-        if loop is not None:
-            loop.load_state_dict(state["dynamic"])
-        timings = state["timings"]
-        start_frame = int(state["next_frame"])
+        cfg, seq = self.cfg, self.seq
+        seed_everything(int(cfg.run.seed))
+        self.slam = SLAM(cfg, seq.intrinsics, self.device, bounds=sequence_bounds(cfg, seq))
+        self.timings = {"track": [], "map": [], "frame": []}
+        if cfg.run.mode == "dynamic":
+            from dynslam_cli.run.dynamic import DynamicLoop
+
+            masks = self.out / "masks" if cfg.run.save_masks else None
+            self.loop = DynamicLoop(cfg, seq.intrinsics, self.slam, self.device, masks)
+            self.timings = {k: [] for k in ("segment", "encode", "classify", "track", "render", "check", "update",
+                                            "map", "frame")}
+        if state is None:
+            return 0
+        self.slam.load_state_dict(state["slam"])
+        if self.loop is not None:
+            self.loop.load_state_dict(state["dynamic"])
+        self.timings = state["timings"]
         torch.set_rng_state(state["torch_rng"])
         np.random.set_state(state["np_rng"])
         random.setstate(state["py_rng"])
-    bar = None
-    if progress:
-        from tqdm import tqdm
+        return int(state["next_frame"])
 
-        bar = tqdm(total=n, initial=start_frame, desc=f"{seq.dataset}/{seq.name}", unit="f", file=sys.stderr,
-                   dynamic_ncols=True)
-    t_run = time.perf_counter()
-    processed = 0
-    try:
-        for i in range(start_frame, n):
-            frame = seq[i]
-            if loop is None:
-                r = slam.process(frame)
-                step = {"track": r.track.ms, "map": 0.0 if r.map is None else r.map.ms, "frame": r.ms,
-                        "_loss": r.track.loss}
-            else:
-                step = loop.process(frame, seq.stamps[i])
-            for k in timings:
-                timings[k].append(float(step[k]))
-            processed += 1
-            if bar is not None:
-                el = time.perf_counter() - t_run
-                post = {"fps": f"{processed / el:.2f}", "loss": f"{step['_loss']:.3f}"}
-                if loop is not None:
-                    post.update(dyn=step["_dynamic"], updates=len(loop.records))
-                bar.set_postfix(post)
-                bar.update(1)
+    def _open_bar(self, initial: int) -> None:
+        """The bar starts after frame 0's map initialisation, so its rate and ETA are those of ordinary frames."""
+        if self.progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.n, initial=initial, desc=f"{self.seq.dataset}/{self.seq.name}", unit="f",
+                            file=sys.stderr, dynamic_ncols=True)
+
+    def _close_bar(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def _step(self, i: int) -> dict:
+        if self.loop is not None:
+            return self.loop.process(self.seq[i], self.seq.stamps[i])
+        r = self.slam.process(self.seq[i])
+        return {"track": r.track.ms, "map": 0.0 if r.map is None else r.map.ms, "frame": r.ms, "_loss": r.track.loss}
+
+    def _frames(self, start: int) -> int:
+        """Process frames from ``start``; returns the next frame (``n`` unless run.stop_after stopped it)."""
+        cfg, n = self.cfg, self.n
+        if start == 0:
+            _say(self.progress, f"initialising the map from frame 0 ({cfg.mapping.first_iters} iterations)...")
+        else:
+            self._open_bar(start)
+        for i in range(start, n):
+            step = self._step(i)
+            for k in self.timings:
+                self.timings[k].append(float(step[k]))
             done = i + 1
-            stop = cfg.run.stop_after > 0 and processed >= cfg.run.stop_after and done < n
+            if self.progress:
+                post = {"loss": f"{step['_loss']:.3f}"}
+                if self.loop is not None:
+                    post.update(dyn=step["_dynamic"], updates=len(self.loop.records))
+                if self.bar is None:
+                    self._open_bar(done)
+                    self.bar.set_postfix(post)
+                else:
+                    self.bar.set_postfix(post, refresh=False)
+                    self.bar.update(1)
+            stop = cfg.run.stop_after > 0 and done - start >= cfg.run.stop_after and done < n
             periodic = cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n
             if periodic or stop:
-                _save_checkpoint(ckpt, slam, done, timings, cfg_yaml, loop)
-                if loop is not None:
-                    loop.write_updates(updates_path)
+                _save_checkpoint(self.ckpt, self.slam, done, self.timings, self.identity, self.loop)
+                if self.loop is not None:
+                    self.loop.write_updates(self.out / "classifier_updates.jsonl")
             if stop:
-                meta.update(status="interrupted", error=f"stopped after {processed} frames (run.stop_after)")
-                write_json_atomic(run_json, meta)
-                return RunResult("interrupted", out, done, 0.0, {"run": run_json, "checkpoint": ckpt})
-        if bar is not None:
-            bar.close()
-        paths = {"config": out / "config.yaml", "run": run_json}
+                self._close_bar()
+                return done
+        self._close_bar()
+        return n
+
+    def _finish(self) -> tuple[float, dict]:
+        """Final bundle adjustment, trajectory, mesh, timing; the checkpoint goes (unless kept)."""
+        cfg, out, slam, loop = self.cfg, self.out, self.slam, self.loop
+        paths = {"config": out / "config.yaml", "run": self.run_json}
+        if cfg.mapping.final_iters > 0:
+            _say(self.progress, f"final bundle adjustment ({cfg.mapping.final_iters} iterations)...")
         fin = slam.finish()  # mapping.final_iters of bundle adjustment (none by default)
-        poses = slam.trajectory()
-        paths["traj"] = write_tum(out / "traj_est.txt", seq.stamps, poses)
+        paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, slam.trajectory())
         if cfg.run.mesh:
+            _say(self.progress, f"extracting the mesh ({cfg.run.mesh_resolution} m voxels)...")
             mesh = slam.extract_mesh(cfg.run.mesh_resolution)
             with atomic_path(out / "mesh.ply") as tmp:
                 mesh.export(tmp, file_type="ply", encoding="binary")
             paths["mesh"] = out / "mesh.ply"
-        frame_ms = np.asarray(timings["frame"], float)
+        frame_ms = np.asarray(self.timings["frame"], float)
         final_ms = 0.0 if fin is None else float(fin.ms)  # counted in the overall fps
         total_s = (frame_ms.sum() + final_ms) / 1000.0
         fps = float(len(frame_ms) / total_s) if total_s > 0 else 0.0
@@ -260,32 +429,18 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
             "frames": int(len(frame_ms)), "fps": fps,
             "fps_after_first": float(len(steady) / (steady.sum() / 1000.0)) if steady.sum() > 0 else 0.0,
             "first_frame_ms": float(frame_ms[0]) if len(frame_ms) else 0.0, "final_ba_ms": final_ms,
-            "median_ms": {k: float(np.median(v)) if len(v) else 0.0 for k, v in timings.items()},
-            "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in timings.items()},
+            "median_ms": {k: float(np.median(v)) if len(v) else 0.0 for k, v in self.timings.items()},
+            "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in self.timings.items()},
         }
         if loop is not None:
-            paths["updates"] = loop.write_updates(updates_path)
+            paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
             timing["classifier_updates"] = len(loop.records)
             timing["retracked_frames"] = sum(1 for r in loop.records if r.get("retracked"))
             # rays forgotten for good (run.forget_radius, run.carve_margin), counted from the keyframes
             timing["keyframe_rays_gone"] = int(sum(int(k.gone.sum()) for k in slam.keyframes if k.gone is not None))
         paths["timing"] = write_json_atomic(out / "timing.json", timing)
         if slam.events:
-            write_json_atomic(out / "tracking_events.json", slam.events)
-        if ckpt.exists() and not cfg.run.keep_checkpoint:
-            ckpt.unlink()
-        meta.update(status="completed", finished=_now(), frames=n)
-        write_json_atomic(run_json, meta)
-        return RunResult("completed", out, n, fps, paths)
-    except BaseException as exc:
-        if bar is not None:
-            bar.close()
-        meta.update(status="failed", finished=_now(),
-                    error=str(exc) if isinstance(exc, DynslamError) else f"{type(exc).__name__}: {exc}")
-        try:
-            write_json_atomic(run_json, meta)
-        except OSError:
-            pass
-        if not isinstance(exc, (DynslamError, KeyboardInterrupt)):
-            traceback.print_exc(file=sys.stderr)
-        raise
+            paths["events"] = write_json_atomic(out / "tracking_events.json", slam.events)
+        if self.ckpt.exists() and not cfg.run.keep_checkpoint:
+            self.ckpt.unlink()
+        return fps, paths
