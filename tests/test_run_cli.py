@@ -73,6 +73,62 @@ def test_bad_input_exits_2_with_one_line(clip, tmp_path):
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o"), "--set", "tracking.iterz=3"])
     assert res.exit_code == 2 and "unknown config key 'tracking.iterz'" in res.output
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o"), "--device", "tpu"])
-    assert res.exit_code == 2 and "unknown device" in res.output
+    assert res.exit_code == 2 and "device" in res.output and "'tpu'" in res.output
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(tmp_path / "o2"), "--resume"])
     assert res.exit_code == 2 and "checkpoint" in res.output
+
+
+@pytest.mark.parametrize("exc, status", [(RuntimeError("injected fault"), "failed"),
+                                         (KeyboardInterrupt(), "interrupted")])
+def test_a_run_that_breaks_says_so_and_frees_the_folder(clip, tmp_path, monkeypatch, exc, status):
+    from dynslam_cli.slam.system import SLAM
+
+    process = SLAM.process
+
+    def breaks_at_frame_2(self, frame, *a, **k):
+        if frame.index == 2:
+            raise exc
+        return process(self, frame, *a, **k)
+
+    monkeypatch.setattr(SLAM, "process", breaks_at_frame_2)
+    out = tmp_path / "run"
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q"] + TINY)
+    assert res.exit_code != 0
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["status"] == status and meta["finished"]
+    assert ("injected fault" in meta["error"]) if status == "failed" else ("interrupted" in meta["error"])
+    assert not (out / ".lock").exists() and not (out / "traj_est.txt").exists()
+
+
+def test_run_json_says_completed_only_after_the_mesh(clip, tmp_path, monkeypatch):
+    from dynslam_cli.slam.system import SLAM
+
+    out = tmp_path / "run"
+    seen = []
+
+    def mesh_fails(self, voxel):
+        seen.append(json.loads((out / "run.json").read_text())["status"])
+        raise MemoryError("marching cubes ran out of memory")
+
+    monkeypatch.setattr(SLAM, "extract_mesh", mesh_fails)
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q"] + TINY)
+    assert res.exit_code != 0 and seen == ["running"]
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["status"] == "failed" and "MemoryError: marching cubes" in meta["error"]
+    assert not (out / "mesh.ply").exists() and not (out / "timing.json").exists()
+
+
+def test_progress_phases_on_stderr_and_threads(clip, tmp_path):
+    out = tmp_path / "run"
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out)] + TINY + ["--threads", "2"])
+    assert res.exit_code == 0, res.output
+    err = res.stderr
+    init = err.index("initialising the map from frame 0 (15 iterations)...")
+    assert init < err.index("1/6") < err.index("6/6") < err.index("extracting the mesh (0.1 m voxels)...")
+    assert "0/6" not in err  # the bar starts once frame 0 has initialised the map
+    assert res.stdout.startswith("run completed: 6 frames")
+    assert json.loads((out / "run.json").read_text())["threads"] == 2
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q", "--overwrite"] + TINY)
+    assert res.exit_code == 0 and res.stderr == ""
+    res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "--threads", "-1"] + TINY)
+    assert res.exit_code == 2 and "--threads must be >= 0" in res.output
