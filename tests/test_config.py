@@ -54,8 +54,8 @@ def test_exponent_without_a_dot_is_a_number(tmp_path: Path):
     # PyYAML (YAML 1.1) reads 1e-8 as a string; float fields accept it from --set and from files
     f = tmp_path / "c.yaml"
     f.write_text("map:\n  w_smooth: 5E+3\n")
-    cfg = load_config(config_file=f, overrides=["map.w_depth=1e-8", "map.w_rgb=-2.5e1"])
-    assert cfg.map.w_smooth == 5000.0 and cfg.map.w_depth == 1e-8 and cfg.map.w_rgb == -25.0
+    cfg = load_config(config_file=f, overrides=["map.w_depth=1e-8", "map.w_rgb=2.5e1"])
+    assert cfg.map.w_smooth == 5000.0 and cfg.map.w_depth == 1e-8 and cfg.map.w_rgb == 25.0
     with pytest.raises(DynslamError, match="must be an integer"):
         apply_overrides(Config(), ["tracking.iters=1e3"])
 

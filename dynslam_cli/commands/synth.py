@@ -38,11 +38,11 @@ def register(app: typer.Typer) -> None:
 
         if preset not in PRESETS:
             raise DynslamError(f"unknown synthetic preset '{preset}'; presets: {', '.join(PRESETS)}")
-        cfg = c.resolve_config(f"synth/{preset}", config, sets).synth
-        if seed is not None:
-            cfg.seed = seed
-        if size is not None:
-            cfg.width, cfg.height = parse_size(size)
+        extra = [] if seed is None else [f"synth.seed={seed}"]
+        if size is not None:  # checked with the config's rules, like --set synth.width=...
+            width, height = parse_size(size)
+            extra += [f"synth.width={width}", f"synth.height={height}"]
+        cfg = c.resolve_config(f"synth/{preset}", config, list(sets or []) + extra).synth
         if frames is not None and frames < 1:
             raise DynslamError(f"--frames must be >= 1, got {frames}")
 

@@ -9,7 +9,9 @@ Order of precedence (later wins):
 4. ``--config FILE`` (same layout as base.yaml),
 5. ``--set section.key=value`` overrides (values parsed as YAML).
 
-Unknown keys anywhere are an error that names the key, the file and the valid keys.
+Unknown keys anywhere are an error that names the key, the file and the valid keys.  Once all
+layers are merged, every value is checked against its field's rule (``config.fields.opt``) and
+each part's cross-field rules (``validate``): ``config: map.near must be < map.far (got 2 >= 1.5)``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
+from dynslam_cli.config.fields import rule_of
 from dynslam_cli.config.schema import Config
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.utils.io import write_text_atomic
@@ -196,7 +199,26 @@ def load_config(
         data = dict(data)
         data.pop("sequences", None)
         _merge_into(cfg, data, source)
-    return apply_overrides(cfg, overrides)
+    return validate_config(apply_overrides(cfg, overrides))
+
+
+def validate_config(cfg: Any, prefix: str = "") -> Any:
+    """Check every value against its field's rule, then each dataclass's cross-field rules;
+    the first violation is a one-line DynslamError naming the key. Returns ``cfg``."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            validate_config(value, f"{prefix}{f.name}.")
+            continue
+        rule = rule_of(f)
+        problem = rule.violation(value) if rule is not None else None
+        if problem:
+            raise DynslamError(f"config: {prefix}{f.name} {problem}")
+    validate = getattr(cfg, "validate", None)
+    if validate is not None:
+        for problem in validate(lambda name: f"{prefix}{name}"):
+            raise DynslamError(f"config: {problem}")
+    return cfg
 
 
 def config_to_dict(cfg: Any) -> dict:
@@ -237,4 +259,4 @@ def config_from_file(path: str | Path) -> Config:
     """Load a saved (resolved) config.yaml without the base/dataset layers."""
     cfg = Config()
     _merge_into(cfg, _read_yaml(Path(path)), str(path))
-    return cfg
+    return validate_config(cfg)

@@ -5,38 +5,52 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from dynslam_cli.config.fields import opt
+from dynslam_cli.config.fields import numbers, opt
 
 
 @dataclass
 class MapConfig:
-    bounds: Optional[list] = opt(None, "Scene bounds [[xmin,ymin,zmin],[xmax,ymax,zmax]] in metres (world frame); null = from the first frame's depth plus `auto_margin`.")
-    auto_margin: float = opt(2.0, "Margin (m) added around the first frame's points when bounds are null.")
-    n_levels: int = opt(16, "Hash grid levels.")
-    n_features: int = opt(2, "Features per level.")
-    log2_hashmap_size: int = opt(16, "log2 of the hash table size per level (19 for large rooms).")
-    base_resolution: int = opt(16, "Coarsest grid resolution.")
-    voxel_size: float = opt(0.02, "Finest grid cell (m): finest resolution = largest bounds extent / voxel_size.")
-    oneblob_bins: int = opt(16, "One-blob encoding bins per axis.")
-    hidden_dim: int = opt(32, "Hidden width of the SDF and colour decoders.")
-    geo_feat_dim: int = opt(15, "Geometry feature passed from the SDF to the colour decoder.")
-    truncation: float = opt(0.10, "TSDF truncation tr (m). The paper uses 0.10; Co-SLAM's TUM config 0.05.")
-    hashgrid_impl: str = opt("auto", "Hash grid implementation: auto (numba on CPU, torch on CUDA), numba, torch.")
+    bounds: Optional[list] = opt(None, "Scene bounds [[xmin,ymin,zmin],[xmax,ymax,zmax]] in metres (world frame); null = "
+                                 "from the first frame's depth plus `auto_margin`.")
+    auto_margin: float = opt(2.0, "Margin (m) added around the first frame's points when bounds are null.", min=0)
+    n_levels: int = opt(16, "Hash grid levels.", min=1)
+    n_features: int = opt(2, "Features per level.", min=1)
+    log2_hashmap_size: int = opt(16, "log2 of the hash table size per level (19 for large rooms).", min=1, max=32)
+    base_resolution: int = opt(16, "Coarsest grid resolution.", min=1)
+    voxel_size: float = opt(0.02, "Finest grid cell (m): finest resolution = largest bounds extent / voxel_size.", above=0)
+    oneblob_bins: int = opt(16, "One-blob encoding bins per axis.", min=1)
+    hidden_dim: int = opt(32, "Hidden width of the SDF and colour decoders.", min=1)
+    geo_feat_dim: int = opt(15, "Geometry feature passed from the SDF to the colour decoder.", min=1)
+    truncation: float = opt(0.10, "TSDF truncation tr (m). The paper uses 0.10; Co-SLAM's TUM config 0.05.", above=0)
+    hashgrid_impl: str = opt("auto", "Hash grid implementation: auto (numba on CPU, torch on CUDA), numba, torch.",
+                             choices=("auto", "numba", "torch"))
     # --- sampling along rays (depth-guided; about 16 samples per ray in all) ---
-    near: float = opt(0.1, "Nearest sample distance (m, along the camera z axis).")
-    far: float = opt(5.0, "Farthest sample distance (m) for rays without a depth measurement.")
-    samples_surface: int = opt(12, "Samples per ray stratified in the band depth ± surface_range.")
-    surface_range: float = opt(0.15, "Half-width (m) of the depth-guided sample band (Co-SLAM: 0.25 with 21 samples).")
-    samples_free: int = opt(4, "Free-space samples per ray stratified in [near, depth - surface_range].")
-    samples_missing: int = opt(16, "Samples per ray stratified over [near, far] where depth is missing.")
-    render_coarse: int = opt(64, "Coarse samples per ray when rendering without depth (render()).")
-    render_fine: int = opt(16, "Fine samples around the first surface crossing when rendering without depth.")
+    near: float = opt(0.1, "Nearest sample distance (m, along the camera z axis).", min=0)
+    far: float = opt(5.0, "Farthest sample distance (m) for rays without a depth measurement.", above=0)
+    samples_surface: int = opt(12, "Samples per ray stratified in the band depth ± surface_range.", min=1)
+    surface_range: float = opt(0.15, "Half-width (m) of the depth-guided sample band (Co-SLAM: 0.25 with 21 samples).", above=0)
+    samples_free: int = opt(4, "Free-space samples per ray stratified in [near, depth - surface_range].", min=0)
+    samples_missing: int = opt(16, "Samples per ray stratified over [near, far] where depth is missing.", min=1)
+    render_coarse: int = opt(64, "Coarse samples per ray when rendering without depth (render()).", min=2)
+    render_fine: int = opt(16, "Fine samples around the first surface crossing when rendering without depth.", min=1)
     # --- losses (Co-SLAM definitions) ---
-    w_rgb: float = opt(1.0, "Weight of the colour loss (MSE of rendered colour).")
-    w_depth: float = opt(0.1, "Weight of the depth loss (MSE of rendered depth, valid depth only).")
-    w_sdf: float = opt(5000.0, "Weight of the SDF loss (samples inside the truncation band).")
-    w_free: float = opt(10.0, "Weight of the free-space loss (samples in front of the band regress to tr).")
-    w_smooth: float = opt(1e-8, "Weight of the feature smoothness loss (mapping only).")
-    smooth_grid: int = opt(8, "Points per axis of the random cube used by the smoothness loss.")
-    smooth_voxel: float = opt(0.1, "Spacing (m) of the smoothness cube's points.")
-    rgb_missing: float = opt(0.05, "Weight of the colour loss on rays without depth (Co-SLAM rgb_missing).")
+    w_rgb: float = opt(1.0, "Weight of the colour loss (MSE of rendered colour).", min=0)
+    w_depth: float = opt(0.1, "Weight of the depth loss (MSE of rendered depth, valid depth only).", min=0)
+    w_sdf: float = opt(5000.0, "Weight of the SDF loss (samples inside the truncation band).", min=0)
+    w_free: float = opt(10.0, "Weight of the free-space loss (samples in front of the band regress to tr).", min=0)
+    w_smooth: float = opt(1e-8, "Weight of the feature smoothness loss (mapping only).", min=0)
+    smooth_grid: int = opt(8, "Points per axis of the random cube used by the smoothness loss.", min=2)
+    smooth_voxel: float = opt(0.1, "Spacing (m) of the smoothness cube's points.", above=0)
+    rgb_missing: float = opt(0.05, "Weight of the colour loss on rays without depth (Co-SLAM rgb_missing).", min=0)
+
+    def validate(self, key):
+        """Cross-field and list rules (see config.fields)."""
+        if not self.near < self.far:
+            yield f"{key('near')} must be < {key('far')} (got {self.near:g} >= {self.far:g})"
+        if self.bounds is not None:
+            rows = self.bounds if isinstance(self.bounds, list) and len(self.bounds) == 2 else None
+            lo, hi = (numbers(rows[0], 3), numbers(rows[1], 3)) if rows else (None, None)
+            if lo is None or hi is None:
+                yield f"{key('bounds')} must be null or [[xmin,ymin,zmin],[xmax,ymax,zmax]] (got {self.bounds!r})"
+            elif not all(a < b for a, b in zip(lo, hi, strict=True)):
+                yield f"{key('bounds')} must have each minimum < its maximum (got {self.bounds!r})"

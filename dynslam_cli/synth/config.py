@@ -9,12 +9,12 @@ from dynslam_cli.config.fields import opt
 
 @dataclass
 class SynthConfig:
-    width: int = opt(640, "Image width in pixels.")
-    height: int = opt(480, "Image height in pixels.")
-    frames: int = opt(150, "Frames rendered when `synth/NAME` is first used.")
-    seed: int = opt(0, "Random seed of textures, trajectories and noise.")
-    fps: float = opt(30.0, "Frame rate of the rendered timestamps.")
-    depth_noise: float = opt(0.002, "Depth noise std at 1 m (m); grows with depth squared like a Kinect.")
-    depth_holes: float = opt(0.01, "Fraction of depth pixels dropped at random (holes).")
+    width: int = opt(640, "Image width in pixels.", min=8, max=4096)
+    height: int = opt(480, "Image height in pixels.", min=8, max=4096)
+    frames: int = opt(150, "Frames rendered when `synth/NAME` is first used.", min=1)
+    seed: int = opt(0, "Random seed of textures, trajectories and noise.", min=0)
+    fps: float = opt(30.0, "Frame rate of the rendered timestamps.", above=0)
+    depth_noise: float = opt(0.002, "Depth noise std at 1 m (m); grows with depth squared like a Kinect.", min=0)
+    depth_holes: float = opt(0.01, "Fraction of depth pixels dropped at random (holes).", min=0, below=1)
     edge_holes: bool = opt(True, "Drop depth at depth discontinuities like a structured-light sensor.")
-    rgb_noise: float = opt(2.0, "Gaussian colour noise std (0-255 scale).")
+    rgb_noise: float = opt(2.0, "Gaussian colour noise std (0-255 scale).", min=0)
