@@ -9,8 +9,9 @@ from pathlib import Path
 
 def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:
     """Run ``spec`` with config overrides ``sets`` into ``out`` unless a completed run is already
-    there (``fresh``: delete and redo it); returns the run's run.json."""
-    from dynslam_cli.commands._common import resolve_config
+    there (``fresh``: delete and redo it; a failed or interrupted run there is replaced); returns the
+    run's run.json."""
+    from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.run.runner import run_sequence
 
     done = out / "run.json"
@@ -18,5 +19,5 @@ def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:
         shutil.rmtree(out)
     if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
         cfg = resolve_config(spec, None, sets)
-        run_sequence(spec, cfg, out_dir=out, progress=True)
+        run_sequence(spec, cfg, out_dir=out, overwrite=True, progress=True)
     return json.loads(done.read_text())

@@ -205,7 +205,7 @@ def main() -> None:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from dynslam_cli.commands._common import resolve_config
+    from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.data.open import open_sequence
     from dynslam_cli.eval.ate import evaluate_run_ate
 
