@@ -74,12 +74,20 @@ def register(app: typer.Typer) -> None:
         out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default <results>/tables)."),
         published: Optional[Path] = typer.Option(None, "--published", help="Published numbers (default configs/published.yaml)."),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Also write the PNG plots."),
+        include_incomplete: bool = typer.Option(False, "--include-incomplete",
+                                                help="Also use runs whose run.json is not 'completed'."),
     ) -> None:
-        """Paper-style tables (CSV, Markdown, LaTeX) and plots from result files only."""
+        """Paper-style tables (CSV, Markdown, LaTeX) and plots from result files only.
+
+        Runs that are not completed and unreadable result files are skipped, each with a warning.
+        """
         from dynslam_cli.eval.tables import make_tables
 
-        r = make_tables(results, out, published, plots)
-        typer.echo(f"{r.runs} completed runs -> {len(r.files)} files in {r.out}")
+        r = make_tables(results, out, published, plots, include_incomplete)
+        for w in r.warnings:
+            typer.echo(f"warning: {w}", err=True)
+        what = "runs" if include_incomplete else "completed runs"
+        typer.echo(f"{r.runs} {what} -> {len(r.files)} files in {r.out}")
 
     @app.command("plot")
     def plot(
