@@ -30,6 +30,7 @@ from urllib.parse import urlsplit
 
 from dynslam_cli.data.names import folder_name, identify, known_names
 from dynslam_cli.errors import DynslamError
+from dynslam_cli.utils.io import default_mode
 
 TUM_BASE = "https://cvg.cit.tum.de/rgbd/dataset"
 BONN_BASE = "https://www.ipb.uni-bonn.de/html/projects/rgbd_dynamic2019"
@@ -161,6 +162,7 @@ def extract(archive: Path, root: Path, folder: str) -> Path:
     archive, root = Path(archive), Path(root)
     target = root / folder
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder}.extract-", dir=root))
+    os.chmod(tmp, default_mode(folder=True))  # mkdtemp makes it 0700; the dataset folder honours the umask
     try:
         try:
             if archive.name.endswith((".tgz", ".tar.gz", ".tar")):

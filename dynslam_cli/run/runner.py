@@ -321,7 +321,7 @@ class _Run:
                 write_json_atomic(self.run_json, self.meta)
             except OSError:
                 pass
-            if not isinstance(exc, (DynslamError, KeyboardInterrupt)):
+            if not isinstance(exc, (DynslamError, KeyboardInterrupt, OSError)):
                 traceback.print_exc(file=sys.stderr)
             raise
 
