@@ -136,6 +136,10 @@ def test_download_tgz_and_zip(server, tmp_path: Path, tum_archive: bytes):
     assert results[0].bytes == len(tum_archive)
     assert sorted(p.name for p in root.iterdir()) == ["rgbd_bonn_crowd", "rgbd_dataset_freiburg3_walking_xyz"]
     assert (root / "rgbd_dataset_freiburg3_walking_xyz" / "rgb.txt").is_file()
+    # the extracted folder honours the umask (mkdtemp alone gives 0700)
+    from dynslam_cli.utils.io import default_mode
+
+    assert (root / "rgbd_bonn_crowd").stat().st_mode & 0o777 == default_mode(folder=True)
     # the downloaded sequences open by name
     from dynslam_cli.config import load_config
     from dynslam_cli.data.open import open_sequence
