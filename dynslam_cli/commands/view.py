@@ -11,7 +11,8 @@ import typer
 def register(app: typer.Typer) -> None:
     @app.command("view")
     def view(
-        run_dirs: List[Path] = typer.Argument(..., help="Run folder(s) holding traj_est.txt; several go into one recording."),
+        run_dirs: List[Path] = typer.Argument(..., metavar="RUN_DIR",
+                                              help="Run folder(s) holding traj_est.txt; several go into one recording."),
         out: Optional[Path] = typer.Option(
             None, "--out", help="Recording file (.rrd); default RUN_DIR/recording.rrd, or the runs' common folder."),
         every: Optional[int] = typer.Option(
