@@ -130,6 +130,13 @@ def test_plot_cli_bad_frame_leaves_the_montage(bonn_run, figures):
     assert r.output.strip().splitlines() == [f"error: no mask for frame(s) 1.5 in {d / 'masks'} "
                                              f"(masks at {seq.stamps[0]} … {seq.stamps[6]}, 3 files)"]
     assert (d / "montage.png").read_bytes() == before
+    r = CliRunner().invoke(app, ["plot", str(d), "--index", "0,x"])
+    assert r.exit_code == 2
+    assert r.output.strip().splitlines() == ["error: --index takes comma-separated frame indices, got '0,x'"]
+    assert (d / "montage.png").read_bytes() == before
+    r = CliRunner().invoke(app, ["plot", str(d), "--index", "6", "--out", str(d / "six.png")])
+    assert r.exit_code == 0, r.output
+    assert (d / "six.png").is_file()
 
 
 def test_montage_without_the_sequence_says_why(tmp_path, figures):

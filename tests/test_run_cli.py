@@ -44,6 +44,8 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert np.allclose(np.linalg.norm(traj[:, 4:], axis=1), 1, atol=1e-5)
     timing = json.loads((out / "timing.json").read_text())
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
+    # calls: frames each part ran on (tracking every frame; mapping on frame 0 and every keyframe_every-th)
+    assert timing["calls"]["track"] == 6 and timing["calls"]["frame"] == 6 and 1 <= timing["calls"]["map"] < 6
     assert (out / "mesh.ply").read_bytes()[:3] == b"ply" and b"binary" in (out / "mesh.ply").read_bytes()[:200]
     assert not (out / "checkpoint.pt").exists()
 

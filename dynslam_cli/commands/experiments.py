@@ -92,17 +92,25 @@ def register(app: typer.Typer) -> None:
     @app.command("plot")
     def plot(
         run_dir: Path = typer.Argument(..., help="Run folder."),
-        frames: Optional[str] = typer.Option(None, "--frames", help="Comma list of mask timestamps (default 4 evenly spread)."),
+        frames: Optional[str] = typer.Option(
+            None, "--frames", help="Comma list of mask timestamps, matched numerically (default 4 evenly spread)."),
+        index: Optional[str] = typer.Option(None, "--index", help="Comma list of frame indices in the run (0 = data.start)."),
         out: Optional[Path] = typer.Option(None, "--out", help="PNG to write (default RUN_DIR/montage.png)."),
     ) -> None:
-        """Montage of input / rendered depth / motion mask at chosen frames of a run with saved masks."""
+        """Montage of input RGB / input depth / rendered depth / motion mask at chosen frames of a run with saved masks."""
         from dynslam_cli.errors import DynslamError
         from dynslam_cli.eval import runs
         from dynslam_cli.eval.plots import montage
 
         d = runs.require_run_dir(run_dir)
         chosen = [s.strip() for s in frames.split(",") if s.strip()] if frames else None
-        p = montage(d, out or d / "montage.png", chosen)
+        indices = None
+        if index:
+            try:
+                indices = [int(s) for s in index.split(",") if s.strip()]
+            except ValueError:
+                raise DynslamError(f"--index takes comma-separated frame indices, got '{index}'") from None
+        p = montage(d, out or d / "montage.png", chosen, indices=indices)
         if p is None:
             raise DynslamError(f"run {d} saved no masks (masks/<ts>.png); run with run.save_masks=true")
         typer.echo(f"wrote {p}")

@@ -192,6 +192,5 @@ def evaluate_run_ate(run_dir: str | Path, gt: Optional[str | Path] = None, align
     if plot:
         from dynslam_cli.eval.plots import plot_ate
 
-        plot_ate(res, run_dir / "ate.png", title=f"{run_dir.name}: ATE RMSE {res.rmse_m:.4f} m "
-                                                 f"(still camera {res.rmse_still_m:.3f} m)")
+        plot_ate(res, run_dir / "ate.png", run_dir=run_dir)
     return res

@@ -9,7 +9,8 @@ config.yaml (motion settings: encoder, segmenter, replay, prior; the cut data.st
 stride), the sequence's rgb.txt (its full length), ate.json, mesh_metrics.json, timing.json
 (``mean_ms``, ``calls``, ``frames``, ``fps``), classifier_updates.jsonl (one line per update; its
 ``frame``/``index``/``timestamp`` field, else the line number, places it in time), masks/<ts>.png
-and, when present, renders/<ts>_depth.png and the input rgb/<ts>.png of the sequence (montage).
+and, when present, renders/<ts>_depth.png and the sequence's input images, found through its
+rgb.txt/depth.txt (montage).
 
 Only runs whose run.json says ``completed`` count (``include_incomplete`` takes the others too);
 a skipped run, and a result file that cannot be used (not JSON, not an object, a number that is

@@ -431,6 +431,7 @@ class _Run:
             "first_frame_ms": float(frame_ms[0]) if len(frame_ms) else 0.0, "final_ba_ms": final_ms,
             "median_ms": {k: float(np.median(v)) if len(v) else 0.0 for k, v in self.timings.items()},
             "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in self.timings.items()},
+            "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
         }
         if loop is not None:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
