@@ -80,8 +80,8 @@ def versions() -> dict:
         out["numba"] = numba.__version__
         try:
             out["numba_threading_layer"] = numba.threading_layer()
-        except ValueError:  # no parallel kernel has run yet
-            out["numba_threading_layer"] = str(numba.config.THREADING_LAYER)
+        except ValueError:  # no parallel kernel has run yet: the layer asked for (utils/threads.py)
+            out["numba_threading_layer"] = f"{numba.config.THREADING_LAYER} (requested)"
     except Exception:
         pass
     return out
@@ -308,7 +308,8 @@ class _Run:
                 return RunResult("interrupted", self.out, done, 0.0, {"run": self.run_json, "checkpoint": self.ckpt})
             fps, paths = self._finish()
             # last: run.json says completed only once every other file is written
-            self.meta.update(status="completed", finished=_now(), frames=self.n)
+            # the threading layer numba really used is known only once a parallel kernel has run
+            self.meta.update(status="completed", finished=_now(), frames=self.n, versions=versions())
             write_json_atomic(self.run_json, self.meta)
             return RunResult("completed", self.out, self.n, fps, paths)
         except BaseException as exc:
