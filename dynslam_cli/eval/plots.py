@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -22,9 +22,8 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.eval import runs
 from dynslam_cli.utils.io import atomic_path
 
-if TYPE_CHECKING:
-    from dynslam_cli.eval.ate import AteResult
-    from dynslam_cli.eval.tables import RunRecord
+# plot_ate takes an eval/ate.py AteResult and plot_updates eval/tables.py RunRecords; neither is imported here,
+# because both modules import this one (no import cycle, not even for type checking).
 
 STAMP_TOL_S = 5e-4  # a mask's timestamp matches a listed image within this (frames are ≥ 10 ms apart)
 RENDER_DEPTH_SCALE = 5000.0  # renders/<ts>_depth.png: uint16, metres × 5000 (run/dynamic.py)
@@ -83,7 +82,7 @@ def run_caption(run_dir: Path) -> str:
 
 
 # ---------------------------------------------------------------- ate.png
-def plot_ate(result: AteResult, out_png: str | Path, title: str = "", run_dir: Optional[str | Path] = None) -> Path:
+def plot_ate(result: Any, out_png: str | Path, title: str = "", run_dir: Optional[str | Path] = None) -> Path:
     """Top view (the two axes of largest ground-truth extent): GT line, estimate coloured by error.
 
     The title names the run (:func:`run_caption` of ``run_dir``; by default the folder of ``out_png``
@@ -130,7 +129,7 @@ def plot_ate(result: AteResult, out_png: str | Path, title: str = "", run_dir: O
 
 
 # ---------------------------------------------------------------- classifier updates
-def plot_updates(recs: list[RunRecord], out: Path) -> list[Path]:
+def plot_updates(recs: list[Any], out: Path) -> list[Path]:
     """One figure per sequence: cumulative classifier updates over the frames, with and without replay."""
     paths = []
     sel = [r for r in recs if r.mode == "dynamic" and r.updates is not None]
