@@ -1,0 +1,144 @@
+"""The keyframe bundle-adjustment backend alone (no neural map) over RGB-D sequences.
+
+Prints one row per (sequence, static mask): ATE RMSE of the online poses and of the final
+trajectory (frames composed with their bundle-adjusted reference keyframes) beside the ATE of a
+camera that never moves, frames lost, keyframes, median ms per frame for tracking and per keyframe
+for bundle adjustment, landmarks at the end.
+
+    .venv/bin/python benchmarks/bench_backend.py --seqs bonn --masks none,yolo
+    .venv/bin/python benchmarks/bench_backend.py --seqs /tmp/bk/static,/tmp/bk/walker --masks gt
+    .venv/bin/python benchmarks/bench_backend.py --seqs bonn --masks yolo --set window=6 --depth full
+
+Sequences: ``bonn`` (../shared/data/bonn_crowd_150_449_s2 with configs/bonn.yaml), or a folder
+(a synthetic scene rendered by ``dynslam synth``, a TUM/Bonn folder).  Masks: ``none`` (all
+pixels), ``gt`` (the ground-truth motion masks of synthetic scenes), ``yolo`` (people found by
+../shared/models/yolov8n-seg_deq_fp32.onnx, dilated 5 px).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))
+BONN = SHARED / "data" / "bonn_crowd_150_449_s2"
+YOLO = SHARED / "models" / "yolov8n-seg_deq_fp32.onnx"
+
+
+def person_masker(dilate: int = 5):
+    """rgb -> H×W bool: pixels of COCO people (class 0), dilated ``dilate`` px."""
+    import cv2
+
+    from dynslam_cli.motion.segment_yolo import YoloSegSegmenter
+
+    seg = YoloSegSegmenter(str(YOLO))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1))
+
+    def mask(rgb: np.ndarray) -> np.ndarray:
+        _, _, classes, masks = seg.detect(rgb)
+        people = np.asarray(masks)[np.asarray(classes) == 0] if len(masks) else []
+        out = np.zeros(rgb.shape[:2], np.uint8)
+        for m in people:
+            out |= np.asarray(m, bool).astype(np.uint8)
+        return cv2.dilate(out, kernel) > 0
+
+    return mask
+
+
+def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: int | None) -> dict:
+    from dynslam_cli.backend.backend import Backend
+    from dynslam_cli.backend.config import BackendConfig
+    from dynslam_cli.config.loader import parse_override
+    from dynslam_cli.config.resolve import resolve_config
+    from dynslam_cli.data.open import open_sequence
+    from dynslam_cli.eval.ate import compute_ate
+    from dynslam_cli.run.runner import write_tum
+
+    path = BONN if spec == "bonn" else Path(spec)
+    cfg = resolve_config(str(path), frames=frames)
+    seq = open_sequence(str(path), cfg)
+    bcfg = BackendConfig()
+    for s in sets:
+        keys, value = parse_override(s)
+        bcfg = dataclasses.replace(bcfg, **{keys[-1]: type(getattr(bcfg, keys[-1]))(value)})
+    k = seq.intrinsics
+    be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg)
+    masker = person_masker() if masks == "yolo" else None
+    online, track_ms, ba_ms, lost, events = [], [], [], 0, []
+    mask_ms = []
+    for f in seq:
+        static = None
+        if masks == "gt":
+            if f.dynamic_mask is None:
+                raise SystemExit(f"{spec} has no ground-truth motion masks (--masks gt)")
+            static = ~f.dynamic_mask
+        elif masker is not None:
+            t0 = time.perf_counter()
+            static = ~masker(f.rgb)
+            mask_ms.append((time.perf_counter() - t0) * 1000)
+        depth = f.depth_full if depth_kind == "full" and f.depth_full is not None else f.depth
+        out = be.track(f.index, f.rgb, depth, static)
+        online.append(out.pose_c2w)
+        track_ms.append(out.track_ms)
+        if out.keyframe and out.ba_ms > 0:
+            ba_ms.append(out.ba_ms)
+        if out.lost:
+            lost += 1
+            events.append(f"{f.index}: {out.reason}")
+    with tempfile.TemporaryDirectory() as tmp:
+        ates = {}
+        for name, poses in (("online", np.stack(online)), ("final", be.trajectory())):
+            est = write_tum(Path(tmp) / f"{name}.txt", seq.stamps, poses)
+            ates[name] = compute_ate(est, seq.groundtruth_file)
+    return {"seq": path.name, "masks": masks, "frames": len(seq),
+            "ate_cm": 100 * ates["online"].rmse_m, "ate_final_cm": 100 * ates["final"].rmse_m,
+            "max_cm": 100 * ates["final"].max_m, "still_cm": 100 * ates["final"].rmse_still_m,
+            "lost": lost, "keyframes": len(be.kf_frame),
+            "track_ms": float(np.median(track_ms)), "ba_ms": float(np.median(ba_ms)) if ba_ms else 0.0,
+            "ba_max_ms": float(np.max(ba_ms)) if ba_ms else 0.0, "landmarks": be.lm.n_alive,
+            "mask_ms": float(np.median(mask_ms)) if mask_ms else 0.0, "events": events}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seqs", default="bonn", help="comma-separated: bonn or sequence folders")
+    ap.add_argument("--masks", default="none,yolo", help="comma-separated, of none, gt, yolo")
+    ap.add_argument("--set", action="append", default=[], help="BackendConfig override key=value (repeatable)")
+    ap.add_argument("--depth", choices=("cut", "full"), default="cut",
+                    help="depth as the config cuts it (data.max_depth) or all of it")
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--events", action="store_true", help="print the lost frames")
+    a = ap.parse_args()
+    rows = []
+    for spec in a.seqs.split(","):
+        if spec == "bonn" and not BONN.is_dir():
+            print(f"skipping bonn: {BONN} is absent", file=sys.stderr)
+            continue
+        for masks in a.masks.split(","):
+            if masks == "yolo" and not YOLO.is_file():
+                print(f"skipping yolo masks: {YOLO} is absent", file=sys.stderr)
+                continue
+            r = run_case(spec, masks, a.set, a.depth, a.frames)
+            rows.append(r)
+            print(f"done {r['seq']} {masks}", file=sys.stderr, flush=True)
+            if a.events:
+                for e in r["events"]:
+                    print("  lost", e, file=sys.stderr)
+    print(f"settings: {' '.join(a.set) or 'defaults'}, depth {a.depth}")
+    cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "max_cm", "still_cm", "lost", "keyframes",
+            "track_ms", "ba_ms", "ba_max_ms", "landmarks", "mask_ms")
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+
+
+if __name__ == "__main__":
+    main()

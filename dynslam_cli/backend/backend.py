@@ -1,0 +1,214 @@
+"""`Backend`: ORB-SLAM2-style RGB-D tracking and local mapping on static pixels.
+
+Per frame: ORB keypoints on static pixels → constant-velocity guess → match the local map (the
+landmarks of the reference keyframe's covisible keyframes) → robust pose-only optimisation (wider
+search, then PnP relocalisation, else ``lost``) → keyframe decision by overlap → on a keyframe:
+its observations, new landmarks from its unmatched keypoints with depth, culling, and local bundle
+adjustment of the newest keyframes' window (gtsam)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from dynslam_cli.backend.bundle import local_bundle_adjustment
+from dynslam_cli.backend.config import BackendConfig
+from dynslam_cli.backend.features import Detector, Keypoints, backproject
+from dynslam_cli.backend.keyframes import need_keyframe
+from dynslam_cli.backend.landmarks import LandmarkMap
+from dynslam_cli.backend.tracking import Camera, track_frame
+
+
+@dataclass
+class TrackOutcome:
+    """The frame's ``pose_c2w`` (4×4; the constant-velocity pose when ``lost``), its static
+    ``inliers``, ``lost``, ``keyframe`` (inserted, local BA has run), ``reason`` (how it was
+    tracked: motion | wide | relocalised | first | lost: why), ``track_ms``/``ba_ms``, and
+    ``landmarks`` (alive after this frame)."""
+
+    pose_c2w: np.ndarray
+    inliers: int
+    lost: bool
+    keyframe: bool
+    reason: str
+    track_ms: float = 0.0
+    ba_ms: float = 0.0
+    landmarks: int = 0
+
+
+class Backend:
+    """``intrinsics``: (fx, fy, cx, cy, W, H) of the undistorted images; ``cfg``: BackendConfig;
+    ``first_pose``: the first frame's camera-to-world pose (identity when None)."""
+
+    def __init__(self, intrinsics, cfg: Optional[BackendConfig] = None, first_pose: Optional[np.ndarray] = None):
+        fx, fy, cx, cy, w, h = intrinsics
+        self.cfg = cfg or BackendConfig()
+        self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.baseline)
+        self.detector = Detector(self.cfg.features, int(w), int(h))
+        self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
+        self.lm = LandmarkMap()
+        self.kf_frame = np.zeros(0, np.int64)
+        self.kf_pose = np.zeros((0, 4, 4))
+        self.ref_kf = -1
+        self.last_pose: Optional[np.ndarray] = None
+        self.prev_pose: Optional[np.ndarray] = None
+        self.last_kf_index = -1
+        self.lost_run = 0
+        self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
+        self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
+
+    # -- public ------------------------------------------------------------------------------------
+    def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None
+              ) -> TrackOutcome:
+        """Track frame ``index`` (RGB H×W×3 uint8, depth H×W metres with 0 = none, ``static_mask``
+        H×W bool: True where the pixel may be used; None = all)."""
+        t0 = time.perf_counter()
+        kp = self.detector.detect(rgb, depth, static_mask)
+        n_depth = int((kp.depth > 0).sum())
+        if len(self.kf_frame) == 0:
+            if n_depth < 2 * self.cfg.min_matches:
+                return self._out(self.first_pose.copy(), 0, True, False,
+                                 f"lost: not initialised ({n_depth} static keypoints with depth)", t0)
+            self._insert_keyframe(index, self.first_pose.copy(), kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
+            self._advance(self.first_pose.copy())
+            return self._out(self.first_pose.copy(), n_depth, False, True, "first", t0)
+        guess = self._predict()
+        ids = self.lm.seen_by(self._local_keyframes(2 * self.cfg.window))
+        tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
+                         lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.search_px,
+                         self.cfg.huber_px, self.cfg.min_matches, seed=index)
+        if tr.lost:
+            self.lost_run += 1
+            self._advance(guess)
+            if self.lost_run >= self.cfg.keyframe_max_gap and n_depth >= 2 * self.cfg.min_matches:
+                # lost for long: start a fresh local map at the predicted pose rather than never recover
+                t1 = time.perf_counter()
+                self._insert_keyframe(index, guess, kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
+                self.lost_run = 0
+                return self._out(guess, 0, True, True, tr.reason + "; new keyframe at the predicted pose", t0,
+                                 ba_ms=(time.perf_counter() - t1) * 1000)
+            return self._out(guess, 0, True, False, tr.reason, t0)
+        self.lost_run = 0
+        self.lm.count(tr.visible, tr.lm)
+        self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
+        n_obs = self.lm.n_obs()
+        ref_ids = self.lm.seen_by([self.ref_kf])
+        n_kf = len(self.kf_frame)
+        ref_tracked = int((n_obs[ref_ids] >= (2 if n_kf > 1 else 1)).sum())
+        untracked = np.ones(len(kp), bool)
+        untracked[tr.kp] = False
+        new_kf, why = need_keyframe(len(tr.lm), ref_tracked, index - self.last_kf_index,
+                                    int((untracked & (kp.depth > 0)).sum()), n_kf, self.cfg.keyframe_ratio,
+                                    self.cfg.keyframe_max_gap)
+        pose = tr.pose
+        ba_ms = 0.0
+        if new_kf:
+            t1 = time.perf_counter()
+            pose = self._insert_keyframe(index, tr.pose, kp, tr.lm, tr.kp)
+            ba_ms = (time.perf_counter() - t1) * 1000
+        self._advance(pose)
+        reason = tr.reason + (f"; keyframe ({why})" if new_kf else "")
+        return self._out(pose, len(tr.lm), False, new_kf, reason, t0, ba_ms=ba_ms)
+
+    def trajectory(self) -> np.ndarray:
+        """Every tracked frame's camera-to-world pose (F×4×4), each composed with its reference
+        keyframe's current pose (so bundle adjustment moves the frames between keyframes too)."""
+        out = self.frame_rel.copy()
+        has = self.frame_ref >= 0
+        out[has] = self.kf_pose[self.frame_ref[has]] @ self.frame_rel[has]
+        return out
+
+    def keyframe_poses(self) -> dict:
+        """Frame index → the keyframe's current (bundle-adjusted) camera-to-world pose."""
+        return {int(f): p.copy() for f, p in zip(self.kf_frame, self.kf_pose)}
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue identically (numpy arrays only)."""
+        nan = np.full((4, 4), np.nan)
+        d = {f"lm.{k}": v for k, v in self.lm.state_dict().items()}
+        d.update({"kf_frame": self.kf_frame.copy(), "kf_pose": self.kf_pose.copy(),
+                  "ref_kf": np.array(self.ref_kf), "last_kf_index": np.array(self.last_kf_index),
+                  "lost_run": np.array(self.lost_run), "first_pose": self.first_pose.copy(),
+                  "frame_ref": self.frame_ref.copy(), "frame_rel": self.frame_rel.copy(),
+                  "last_pose": nan if self.last_pose is None else self.last_pose.copy(),
+                  "prev_pose": nan if self.prev_pose is None else self.prev_pose.copy()})
+        return d
+
+    def load_state_dict(self, d: dict) -> None:
+        self.lm.load_state_dict({k[3:]: v for k, v in d.items() if k.startswith("lm.")})
+        self.kf_frame = np.array(d["kf_frame"], np.int64)
+        self.kf_pose = np.array(d["kf_pose"], np.float64).reshape(-1, 4, 4)
+        self.ref_kf = int(d["ref_kf"])
+        self.last_kf_index = int(d["last_kf_index"])
+        self.lost_run = int(d["lost_run"])
+        self.first_pose = np.array(d["first_pose"], np.float64)
+        self.frame_ref = np.array(d["frame_ref"], np.int64)
+        self.frame_rel = np.array(d["frame_rel"], np.float64).reshape(-1, 4, 4)
+        last, prev = np.array(d["last_pose"], np.float64), np.array(d["prev_pose"], np.float64)
+        self.last_pose = None if np.isnan(last).any() else last
+        self.prev_pose = None if np.isnan(prev).any() else prev
+
+    # -- internals ---------------------------------------------------------------------------------
+    def _out(self, pose, inliers, lost, kf, reason, t0, ba_ms=0.0) -> TrackOutcome:
+        ref = self.ref_kf if len(self.kf_frame) else -1
+        rel = pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ pose
+        self.frame_ref = np.append(self.frame_ref, ref)
+        self.frame_rel = np.concatenate([self.frame_rel, rel[None]])
+        ms = (time.perf_counter() - t0) * 1000 - ba_ms
+        return TrackOutcome(pose, int(inliers), bool(lost), bool(kf), reason, ms, ba_ms, self.lm.n_alive)
+
+    def _predict(self) -> np.ndarray:
+        """Constant velocity: the last frame-to-frame motion (in the camera frame) once more."""
+        if self.prev_pose is None:
+            return self.last_pose.copy()
+        return self.last_pose @ (np.linalg.inv(self.prev_pose) @ self.last_pose)
+
+    def _advance(self, pose: np.ndarray) -> None:
+        self.prev_pose, self.last_pose = self.last_pose, pose.copy()
+
+    def _local_keyframes(self, n: int, kf: Optional[int] = None) -> list[int]:
+        """Keyframe ``kf`` (the reference) and the ``n - 1`` keyframes sharing most landmarks with it."""
+        kf = self.ref_kf if kf is None else kf
+        kfs, _ = self.lm.covisible(self.lm.seen_by([kf]))
+        out = [kf] + [int(k) for k in kfs if k != kf]
+        return out[:n]
+
+    def _insert_keyframe(self, index: int, pose: np.ndarray, kp: Keypoints, lm_ids: np.ndarray,
+                         kp_rows: np.ndarray) -> np.ndarray:
+        """New keyframe: observations of the tracked landmarks, landmarks from the keypoints with
+        depth that matched none, culling, local bundle adjustment.  Returns its refined pose."""
+        kf = len(self.kf_frame)
+        self.kf_frame = np.append(self.kf_frame, int(index))
+        self.kf_pose = np.concatenate([self.kf_pose, pose[None]])
+        self.last_kf_index = int(index)
+        if len(lm_ids):
+            self.lm.observe(kf, lm_ids, kp.subset(kp_rows))
+        fresh = np.ones(len(kp), bool)
+        fresh[kp_rows] = False
+        fresh &= kp.depth > 0
+        new = kp.subset(fresh)
+        self.lm.create(kf, new, backproject(new, self.cam.K, pose), pose[:3, 3])
+        self.ref_kf = kf
+        if kf == 0:
+            return pose
+        self.lm.cull_recent(kf)
+        local = self._local_keyframes(self.cfg.window, kf)
+        ids = self.lm.seen_by(local)
+        if len(ids) == 0:
+            return pose
+        observers = np.unique(self.lm.obs_kf[np.isin(self.lm.obs_lm, ids)])
+        fixed = [int(k) for k in observers if int(k) not in local]
+        optimise = [k for k in local if k != 0]
+        fixed += [0] if 0 in local else []
+        poses = {int(k): self.kf_pose[k] for k in set(optimise) | set(fixed)}
+        res = local_bundle_adjustment(self.cam, poses, optimise, fixed, ids, self.lm.pos[ids], self.lm.obs_kf,
+                                      self.lm.obs_lm, self.lm.obs_uv, self.lm.obs_depth, self.lm.obs_octave,
+                                      self.cfg.huber_px)
+        for k, T in res.poses.items():
+            self.kf_pose[k] = T
+        self.lm.pos[res.ids] = res.pos
+        self.lm.drop_observations(res.outlier)
+        return self.kf_pose[kf].copy()

@@ -1,0 +1,136 @@
+"""Local bundle adjustment with gtsam: the poses of a window of keyframes and the landmarks they
+see, keyframes outside the window that also see those landmarks held fixed, RGB-D stereo factors
+(``GenericStereoFactor3D``; a projection factor where a keypoint had no depth) under a Huber
+kernel, Levenberg-Marquardt with a bounded number of iterations; then the observations over the
+chi-square gate are dropped and it runs once more (ORB-SLAM's two passes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dynslam_cli.backend.features import SCALE
+from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, Camera
+
+
+@dataclass
+class BundleResult:
+    """``poses``: the optimised keyframes' new camera-to-world poses; ``ids``/``pos``: the
+    landmarks' new world positions; ``outlier``: bool over the observations passed in (those
+    used and over the gate after the last pass); ``cost0``/``cost``: the robust cost before/after;
+    ``ms``: wall time."""
+
+    poses: dict
+    ids: np.ndarray
+    pos: np.ndarray
+    outlier: np.ndarray
+    cost0: float
+    cost: float
+    ms: float
+
+
+def observation_chi2(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray, depth: np.ndarray,
+                     octave: np.ndarray) -> np.ndarray:
+    """Whitened squared residual of each observation: camera ``Tcw[i]`` (world-to-camera, M×4×4)
+    sees world point ``X[i]`` at ``uv[i]`` with ``depth[i]`` (0 = none)."""
+    pc = np.einsum("mij,mj->mi", Tcw[:, :3, :3], X) + Tcw[:, :3, 3]
+    z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
+    u = cam.fx * pc[:, 0] / z + cam.cx
+    v = cam.fy * pc[:, 1] / z + cam.cy
+    stereo = depth > 0
+    eu = np.where(stereo, (uv[:, 0] - cam.bf / np.where(stereo, depth, 1.0)) - (u - cam.bf / z), 0.0)
+    out = ((uv[:, 0] - u) ** 2 + (uv[:, 1] - v) ** 2 + eu ** 2) / SCALE ** (2.0 * octave)
+    out[pc[:, 2] <= 1e-6] = np.inf
+    return out
+
+
+def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.ndarray, pos: np.ndarray,
+                            obs_kf: np.ndarray, obs_lm: np.ndarray, obs_uv: np.ndarray, obs_depth: np.ndarray,
+                            obs_octave: np.ndarray, huber: float, iters: tuple = (5, 10)) -> BundleResult:
+    """Optimise keyframes ``optimise`` (ids into ``poses``: camera-to-world 4×4) and landmarks
+    ``ids`` (world positions ``pos``), keyframes ``fixed`` held where they are.  Observations
+    (``obs_*``) of other keyframes or landmarks are ignored.  ``huber``: kernel width in pixels
+    (its square scaled is the chi-square gate)."""
+    import time
+
+    import gtsam
+
+    t0 = time.perf_counter()
+    optimise = [int(k) for k in optimise]
+    fixed = [int(k) for k in fixed if int(k) not in set(optimise)]
+    if not fixed:  # the gauge: hold the first keyframe of the window
+        fixed, optimise = optimise[:1], optimise[1:]
+    kfs = np.asarray(optimise + fixed, np.int64)
+    row = np.full(int(max(ids.max(initial=-1), obs_lm.max(initial=-1))) + 1, -1, np.int64)
+    row[ids] = np.arange(len(ids))
+    use = np.isin(obs_kf, kfs) & (obs_lm < len(row))
+    use[use] = row[obs_lm[use]] >= 0
+    sel = np.flatnonzero(use)
+    X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731
+    L = lambda j: gtsam.symbol("l", int(j))  # noqa: E731
+    Kst = gtsam.Cal3_S2Stereo(cam.fx, cam.fy, 0.0, cam.cx, cam.cy, cam.bf / cam.fx)
+    Km = gtsam.Cal3_S2(cam.fx, cam.fy, 0.0, cam.cx, cam.cy)
+    th = huber
+    th_m = huber * np.sqrt(CHI2_MONO / CHI2_STEREO)
+    huber_s = gtsam.noiseModel.mEstimator.Huber.Create(th)
+    huber_m = gtsam.noiseModel.mEstimator.Huber.Create(th_m)
+    noise_s = [gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, SCALE ** o))
+               for o in range(16)]
+    noise_m = [gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, SCALE ** o))
+               for o in range(16)]
+    anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+
+    values = gtsam.Values()
+    for k in kfs:
+        values.insert(X(k), gtsam.Pose3(np.asarray(poses[int(k)], np.float64)))
+    for j, p in zip(ids, pos):
+        values.insert(L(j), np.asarray(p, np.float64))
+    factors = []
+    oct_ = np.clip(obs_octave[sel], 0, 15)
+    for k, j, (u, v), d, o in zip(obs_kf[sel], obs_lm[sel], obs_uv[sel], obs_depth[sel], oct_):
+        if d > 0:
+            f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - cam.bf / d, v), noise_s[o], X(k), L(j), Kst)
+        else:
+            f = gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), noise_m[o], X(k), L(j), Km)
+        factors.append(f)
+    ordering = gtsam.Ordering()
+    for j in ids:
+        ordering.push_back(L(j))
+    for k in kfs:
+        ordering.push_back(X(k))
+
+    def solve(active, values, n_iter):
+        graph = gtsam.NonlinearFactorGraph()
+        for k in fixed:
+            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(np.asarray(poses[k], np.float64)), anchor))
+        for i in np.flatnonzero(active):
+            graph.add(factors[i])
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(int(n_iter))
+        params.setOrdering(ordering)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        e0 = graph.error(values)
+        out = opt.optimize()
+        return out, e0, graph.error(out)
+
+    def gate(values):
+        Tcw = np.stack([np.linalg.inv(values.atPose3(X(k)).matrix()) for k in kfs])
+        Xs = np.stack([values.atPoint3(L(j)) for j in ids]) if len(ids) else np.zeros((0, 3))
+        kf_row = {int(k): r for r, k in enumerate(kfs)}
+        T = Tcw[np.array([kf_row[int(k)] for k in obs_kf[sel]], np.int64)] if len(sel) else np.zeros((0, 4, 4))
+        c2 = observation_chi2(cam, T, Xs[row[obs_lm[sel]]], obs_uv[sel], obs_depth[sel], obs_octave[sel])
+        return c2 > np.where(obs_depth[sel] > 0, th ** 2, th_m ** 2)
+
+    active = np.ones(len(sel), bool)
+    values, cost0, cost = solve(active, values, iters[0])
+    bad = gate(values)
+    if bad.any() and len(iters) > 1:
+        values, _, cost = solve(~bad, values, iters[1])
+        bad = gate(values)
+    outlier = np.zeros(len(obs_kf), bool)
+    outlier[sel[bad]] = True
+    new_poses = {k: values.atPose3(X(k)).matrix() for k in optimise}
+    new_pos = np.stack([values.atPoint3(L(j)) for j in ids]) if len(ids) else np.zeros((0, 3))
+    return BundleResult(new_poses, np.asarray(ids), new_pos, outlier, float(cost0), float(cost),
+                        (time.perf_counter() - t0) * 1000)

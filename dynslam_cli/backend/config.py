@@ -1,0 +1,28 @@
+"""Configuration of the keyframe bundle-adjustment backend (``dynslam_cli.backend``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dynslam_cli.config.fields import opt
+
+
+@dataclass
+class BackendConfig:
+    features: int = opt(1000, "ORB keypoints per frame (spread over an image grid; ORB-SLAM2 uses 1000 at 640x480).",
+                        min=50)
+    window: int = opt(10, "Keyframes optimised by local bundle adjustment: the newest keyframe and its most "
+                      "covisible ones (the local map frames are tracked against is twice as many).", min=2)
+    search_px: float = opt(15.0, "Radius (px at 640 px width, times the keypoint's scale) in which a local-map "
+                           "landmark projected with the constant-velocity pose looks for its keypoint; the second "
+                           "pass, from the optimised pose, uses a quarter of it.", above=0)
+    huber_px: float = opt(2.8, "Robust (Huber) kernel width in pixels at the finest ORB scale, for the pose and the "
+                          "bundle adjustment; observations beyond it on the chi-square scale (2.8 px ~ the 95 % "
+                          "gate 7.815 of a 3-D RGB-D residual) are outliers.", above=0)
+    min_matches: int = opt(20, "Fewer static inlier matches than this after the motion-model search, the wider "
+                           "search and PnP relocalisation: the frame is 'lost' (constant-velocity pose).", min=6)
+    keyframe_ratio: float = opt(0.75, "A new keyframe when the frame tracks fewer than this fraction of the "
+                                "reference keyframe's landmarks (ORB-SLAM2 RGB-D: 0.75).", above=0, max=1)
+    keyframe_max_gap: int = opt(30, "A new keyframe at the latest this many frames after the last one.", min=1)
+    baseline: float = opt(0.08, "Virtual stereo baseline (m) of the RGB-D residual u_R = u - fx*b/depth: depth "
+                          "noise grows as depth^2/(fx*b) pixels (ORB-SLAM2's TUM bf = 40 at fx 517).", above=0)

@@ -1,0 +1,106 @@
+"""Keypoints of one frame for the backend: ORB on static pixels spread over an image grid, with
+depth and pyramid level; Hamming distances; projection of world points into a camera."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+SCALE = 1.2  # ORB pyramid scale factor
+LEVELS = 8
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int32)
+
+
+@dataclass
+class Keypoints:
+    """``uv`` (N×2 float64 px), ``des`` (N×32 uint8 ORB), ``depth`` (N float64 m, 0 = none),
+    ``octave`` (N int pyramid level)."""
+
+    uv: np.ndarray
+    des: np.ndarray
+    depth: np.ndarray
+    octave: np.ndarray
+
+    def __len__(self) -> int:
+        return int(len(self.uv))
+
+    def subset(self, keep) -> Keypoints:
+        return Keypoints(self.uv[keep], self.des[keep], self.depth[keep], self.octave[keep])
+
+    @classmethod
+    def empty(cls) -> Keypoints:
+        return cls(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0), np.zeros(0, np.int64))
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two N×32 uint8 descriptor arrays."""
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(-1)
+
+
+def pixel_index(uv: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return v, u
+
+
+class Detector:
+    """ORB keypoints spread over a grid of about 40 px cells: cv2 finds twice the budget, then the
+    strongest keypoint of every cell is taken first, the second strongest next, and so on (ORB-SLAM
+    distributes its keypoints over the image for the same reason: clustered keypoints constrain
+    the pose poorly)."""
+
+    def __init__(self, n_features: int, width: int, height: int, cell: int = 40):
+        import cv2
+
+        self.n = int(n_features)
+        self.orb = cv2.ORB_create(2 * self.n, scaleFactor=SCALE, nlevels=LEVELS, fastThreshold=12)
+        self.cols = max(1, int(round(width / cell)))
+        self.rows = max(1, int(round(height / cell)))
+        self.w, self.h = int(width), int(height)
+
+    def detect(self, rgb: np.ndarray, depth: np.ndarray, static: Optional[np.ndarray] = None) -> Keypoints:
+        """Keypoints of ``rgb`` (H×W×3 uint8) on pixels where ``static`` (H×W bool) is true, with
+        the ``depth`` (m, 0 = invalid) at each."""
+        import cv2
+
+        gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+        mask = None if static is None else np.ascontiguousarray(static, np.uint8) * 255
+        kps, des = self.orb.detectAndCompute(gray, mask)
+        if des is None or not kps:
+            return Keypoints.empty()
+        uv = np.array([k.pt for k in kps], np.float64)
+        resp = np.array([k.response for k in kps], np.float64)
+        octave = np.array([k.octave for k in kps], np.int64)
+        v, u = pixel_index(uv, *gray.shape)
+        if static is not None:  # the mask test of cv2 is on the scaled pyramid level: test again
+            ok = np.asarray(static, bool)[v, u]
+            uv, resp, octave, des, v, u = uv[ok], resp[ok], octave[ok], des[ok], v[ok], u[ok]
+        cell = (v * self.rows // self.h) * self.cols + (u * self.cols // self.w)
+        order = np.lexsort((-resp, cell))  # by cell, strongest first
+        cs = cell[order]
+        start = np.r_[0, np.flatnonzero(np.diff(cs)) + 1]
+        rank = np.arange(len(cs)) - np.repeat(start, np.diff(np.r_[start, len(cs)]))
+        keep = order[np.lexsort((-resp[order], rank))][: self.n]
+        keep = np.sort(keep)
+        d = np.asarray(depth, np.float64)[v[keep], u[keep]]
+        d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+        return Keypoints(uv[keep], np.asarray(des, np.uint8)[keep], d, octave[keep])
+
+
+def project(T_c2w: np.ndarray, X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N×2) and depths (N) of world points ``X`` (N×3) in the camera at ``T_c2w``."""
+    R, t = T_c2w[:3, :3], T_c2w[:3, 3]
+    pc = (X - t) @ R  # R^T (X - t)
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) > 1e-9, z, 1e-9)
+    uv = np.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], 1)
+    return uv, z
+
+
+def backproject(kp: Keypoints, K: np.ndarray, T_c2w: np.ndarray) -> np.ndarray:
+    """World points (N×3) of keypoints with depth."""
+    z = kp.depth
+    pc = np.stack([(kp.uv[:, 0] - K[0, 2]) / K[0, 0] * z, (kp.uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], 1)
+    return pc @ T_c2w[:3, :3].T + T_c2w[:3, 3]

@@ -1,0 +1,234 @@
+"""Tracking one frame against the local map: landmarks projected from a predicted pose and
+matched to the frame's keypoints by descriptor within a search radius, a robust pose-only
+Gauss-Newton (RGB-D "virtual stereo" residuals, Huber kernel, chi-square outlier rounds), a wider
+search and PnP relocalisation when too few inliers remain, and a clear ``lost`` otherwise.
+
+The pose-only step is a hand-written numpy Gauss-Newton rather than gtsam: it has 6 unknowns and a
+few hundred residuals, so building a factor graph (a Python loop over the matches) would cost more
+than solving it; vectorised it takes about a millisecond per round."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dynslam_cli.backend.features import SCALE, Keypoints, hamming, project
+
+CHI2_STEREO = 7.815  # 95 % gate of a 3-dof residual (u, v, u_R)
+CHI2_MONO = 5.991  # 2 dof
+
+
+@dataclass
+class Camera:
+    """Pinhole intrinsics and the virtual stereo focal-baseline product ``bf`` (px·m)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    bf: float
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+
+def _rodrigues(phi: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(phi))
+    if th < 1e-12:
+        return np.eye(3)
+    k = phi / th
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
+
+
+def stereo_residuals(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray, depth: np.ndarray):
+    """Camera points, predicted (u, v, u_R) and the residual observed - predicted (N×3; the u_R
+    row is meaningless where ``depth`` is 0)."""
+    pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
+    u = cam.fx * pc[:, 0] / z + cam.cx
+    v = cam.fy * pc[:, 1] / z + cam.cy
+    ur = u - cam.bf / z
+    obs_ur = uv[:, 0] - cam.bf / np.where(depth > 0, depth, 1.0)
+    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, obs_ur - ur], 1)
+    return pc, e
+
+
+def chi2(cam: Camera, Tcw: np.ndarray, X, uv, depth, octave) -> np.ndarray:
+    """Whitened squared error of each observation (sigma = SCALE^octave px)."""
+    pc, e = stereo_residuals(cam, Tcw, X, uv, depth)
+    e[depth <= 0, 2] = 0
+    out = (e * e).sum(1) / SCALE ** (2.0 * octave)
+    out[pc[:, 2] <= 1e-6] = np.inf
+    return out
+
+
+def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, huber: float,
+                  rounds: int = 4, iters: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Robust pose-only optimisation of camera ``T_c2w`` observing world points ``X`` at keypoints
+    ``kp`` (same order); ORB-SLAM's scheme: ``rounds`` rounds of Gauss-Newton, after each the
+    observations over the chi-square gate are left out of the next (and may come back), Huber
+    kernel in all but the last.  Returns the pose and the inlier mask."""
+    n = len(X)
+    if n < 3:
+        return T_c2w.copy(), np.zeros(n, bool)
+    stereo = kp.depth > 0
+    th = np.where(stereo, huber ** 2, huber ** 2 * CHI2_MONO / CHI2_STEREO)
+    info = SCALE ** (-2.0 * kp.octave)
+    Tcw = np.linalg.inv(T_c2w)
+    inl = np.ones(n, bool)
+    for r in range(rounds):
+        robust = r < rounds - 1
+        for _ in range(iters):
+            pc, e = stereo_residuals(cam, Tcw, X, kp.uv, kp.depth)
+            z = pc[:, 2]
+            front = z > 1e-6
+            w = info * (inl & front)
+            e[~stereo, 2] = 0
+            c2 = (e * e).sum(1) * info
+            if robust:
+                s = np.sqrt(np.maximum(c2, 1e-18))
+                w = w * np.where(s <= np.sqrt(th), 1.0, np.sqrt(th) / s)
+            zs = np.where(front, z, 1.0)
+            x, y = pc[:, 0], pc[:, 1]
+            Jp = np.zeros((n, 3, 3))
+            Jp[:, 0, 0] = cam.fx / zs
+            Jp[:, 0, 2] = -cam.fx * x / zs ** 2
+            Jp[:, 1, 1] = cam.fy / zs
+            Jp[:, 1, 2] = -cam.fy * y / zs ** 2
+            Jp[:, 2, 0] = cam.fx / zs
+            Jp[:, 2, 2] = (-cam.fx * x + cam.bf) / zs ** 2
+            Jp[~stereo, 2, :] = 0
+            skew = np.zeros((n, 3, 3))  # -[pc]x
+            skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
+            skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
+            J = np.concatenate([Jp, Jp @ skew], 2)  # d(pred)/d(rho, phi), left perturbation of Tcw
+            H = np.einsum("n,nki,nkj->ij", w, J, J)
+            g = np.einsum("n,nki,nk->i", w, J, e)
+            if w.sum() <= 0 or np.linalg.matrix_rank(H) < 6:
+                break
+            d = np.linalg.solve(H, g)
+            R = _rodrigues(d[3:])
+            Tcw = np.block([[R @ Tcw[:3, :3], (R @ Tcw[:3, 3] + d[:3])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+            if np.linalg.norm(d) < 1e-8:
+                break
+        inl = chi2(cam, Tcw, X, kp.uv, kp.depth, kp.octave) <= th
+    return np.linalg.inv(Tcw), inl
+
+
+def search_by_projection(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, des: np.ndarray, scale: np.ndarray,
+                         kp: Keypoints, radius: float, ratio: float = 0.8, max_dist: int = 100):
+    """Match landmarks (world points ``X``, descriptors ``des``, expected ORB scale factor
+    ``scale``) projected into the camera at ``T_c2w`` to keypoints ``kp`` within ``radius`` px ×
+    the scale, by Hamming distance (at most ``max_dist``, best below ``ratio`` × second best), one
+    landmark per keypoint.  Returns (landmark rows, keypoint rows, visible mask over landmarks)."""
+    from scipy.spatial import cKDTree
+
+    uv, z = project(T_c2w, X, cam.K)
+    vis = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    none = np.zeros(0, np.int64)
+    if not vis.any() or len(kp) == 0:
+        return none, none, vis
+    li = np.flatnonzero(vis)
+    rad = radius * np.clip(scale[li], 1.0, SCALE ** 7)
+    pairs = cKDTree(uv[li]).sparse_distance_matrix(cKDTree(kp.uv), float(rad.max()), output_type="ndarray")
+    a, b = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    level = np.log(np.clip(scale[li[a]], 1e-3, None)) / np.log(SCALE)
+    ok = (pairs["v"] <= rad[a]) & (np.abs(kp.octave[b] - level) <= 2)
+    a, b = a[ok], b[ok]
+    if len(a) == 0:
+        return none, none, vis
+    dist = hamming(des[li[a]], kp.des[b])
+    order = np.lexsort((b, dist, a))  # per landmark, best first
+    a, b, dist = a[order], b[order], dist[order]
+    first = np.r_[True, a[1:] != a[:-1]]
+    nxt = np.r_[dist[1:], 10 ** 6]  # where the next row has the same landmark: its second best
+    has2 = np.r_[a[1:] == a[:-1], False]
+    best_ok = first & (dist <= max_dist) & ~(has2 & (dist >= ratio * nxt))
+    a, b, dist = a[best_ok], b[best_ok], dist[best_ok]
+    order = np.lexsort((a, dist))  # one landmark per keypoint: the closest descriptor
+    a, b = a[order], b[order]
+    _, keep = np.unique(b, return_index=True)
+    keep = np.sort(keep)
+    return li[a[keep]], b[keep], vis
+
+
+def pnp_relocalise(cam: Camera, X: np.ndarray, des: np.ndarray, kp: Keypoints, seed: int, min_inliers: int,
+                   ratio: float = 0.8, px: float = 4.0):
+    """Pose (camera-to-world) from the frame's keypoints matched to landmarks ``X``/``des`` by
+    descriptor alone and PnP with RANSAC (cv2, seeded); None when fewer than ``min_inliers``."""
+    import cv2
+
+    if len(X) < 6 or len(kp) < 6:
+        return None
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(kp.des, des, k=2)
+    q, t = [], []
+    for p in pairs:
+        if len(p) == 2 and p[0].distance < ratio * p[1].distance and p[0].distance <= 100:
+            q.append(p[0].queryIdx)
+            t.append(p[0].trainIdx)
+    if len(q) < max(min_inliers, 6):
+        return None
+    q, t = np.asarray(q), np.asarray(t)
+    cv2.setRNGSeed(int(seed))
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X[t].astype(np.float64), kp.uv[q].astype(np.float64), cam.K, None,
+                                             iterationsCount=300, reprojectionError=px * cam.width / 640.0,
+                                             confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    R, _ = cv2.Rodrigues(rvec)
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ tvec[:, 0]
+    return T if np.all(np.isfinite(T)) else None
+
+
+@dataclass
+class FrameTrack:
+    """What tracking one frame found: ``pose`` (camera-to-world), the matched landmark ids and
+    keypoint rows that are inliers, the landmark ids that projected into the frame, ``lost``,
+    ``reason`` (motion | wide | relocalised | lost: ...)."""
+
+    pose: np.ndarray
+    lm: np.ndarray
+    kp: np.ndarray
+    visible: np.ndarray
+    lost: bool
+    reason: str
+
+
+def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, X: np.ndarray, des: np.ndarray,
+                scale_fn, search_px: float, huber: float, min_matches: int, seed: int) -> FrameTrack:
+    """Track keypoints ``kp`` against the local map (landmark ``ids``, positions ``X``,
+    descriptors ``des``; ``scale_fn(rows, dist)`` their expected ORB scale at camera distance
+    ``dist``) from the predicted pose ``guess``."""
+    r = search_px * cam.width / 640.0
+
+    def attempt(T, radius):
+        dist = np.linalg.norm(X - T[:3, 3], axis=1)
+        a, b, vis = search_by_projection(cam, T, X, des, scale_fn(np.arange(len(X)), dist), kp, radius)
+        if len(a) < 3:
+            return T, a[:0], b[:0], vis
+        T2, inl = optimize_pose(cam, T, X[a], kp.subset(b), huber)
+        return T2, a[inl], b[inl], vis
+
+    T, a, b, _ = attempt(guess, r)
+    reason = "motion"
+    if len(a) < min_matches:
+        T, a, b, _ = attempt(guess, 3 * r)
+        reason = "wide"
+    if len(a) < min_matches:
+        Tp = pnp_relocalise(cam, X, des, kp, seed, min_matches)
+        if Tp is None:
+            return FrameTrack(guess.copy(), a[:0], b[:0], np.zeros(0, np.int64), True,
+                              f"lost: {len(a)} static matches (< {min_matches}) and no PnP relocalisation")
+        T, reason = Tp, "relocalised"
+    T, a, b, vis = attempt(T, max(r / 4, 2.0))  # the local map from the tracked pose: more, closer matches
+    if len(a) < min_matches:
+        return FrameTrack(guess.copy(), a[:0], b[:0], np.zeros(0, np.int64), True,
+                          f"lost: {len(a)} static inliers (< {min_matches}) after {reason} tracking")
+    return FrameTrack(T, ids[a], b, ids[vis], False, reason)
