@@ -10,7 +10,6 @@ import numpy as np
 
 SCALE = 1.2  # ORB pyramid scale factor
 LEVELS = 8
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int32)
 
 
 @dataclass
@@ -36,7 +35,8 @@ class Keypoints:
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance of two N×32 uint8 descriptor arrays."""
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(-1)
+    x = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
+    return np.bitwise_count(x).sum(-1, dtype=np.int64)
 
 
 def pixel_index(uv: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:

@@ -107,8 +107,9 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
             skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
             skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
             J = np.concatenate([Jp, Jp @ skew], 2)  # d(pred)/d(rho, phi), left perturbation of Tcw
-            H = np.einsum("n,nki,nkj->ij", w, J, J)
-            g = np.einsum("n,nki,nk->i", w, J, e)
+            Jw = (J * w[:, None, None]).reshape(-1, 6)
+            H = Jw.T @ J.reshape(-1, 6)
+            g = Jw.T @ e.reshape(-1)
             if w.sum() <= 0 or np.linalg.matrix_rank(H) < 6:
                 break
             d = np.linalg.solve(H, g)

@@ -1,0 +1,132 @@
+"""The composed backend (dynslam_cli.backend.backend.Backend) on a rendered textured wall, and the
+keyframe policy (dynslam_cli.backend.keyframes)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from dynslam_cli.backend.backend import Backend
+from dynslam_cli.backend.config import BackendConfig
+from dynslam_cli.backend.keyframes import need_keyframe
+
+W, H, FOC = 320, 240, 280.0
+INTR = (FOC, FOC, W / 2, H / 2, W, H)
+
+
+def _wall_texture(seed=0, n=400):
+    rng = np.random.default_rng(seed)
+    blocks = rng.integers(0, 256, (n // 8, n // 8)).astype(np.uint8)
+    tex = cv2.resize(blocks, (n, n), interpolation=cv2.INTER_NEAREST)
+    return cv2.GaussianBlur(tex, (3, 3), 0.8)
+
+
+TEX = _wall_texture()
+
+
+def _camera(i: int) -> np.ndarray:
+    """Frame i: moving right 2 cm and yawing 0.3 degrees per frame."""
+    a = np.radians(0.3 * i)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = [0.02 * i, 0.0, 0.0]
+    return T
+
+
+def _render(T):
+    """RGB and depth of the wall z = 2.5 + 0.3 x and, in front of it, a panel z = 1.2 over
+    -0.2 < x < 0.4 (world; texture over x, y in [-3, 3])."""
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    dc = np.stack([(uu - W / 2) / FOC, (vv - H / 2) / FOC, np.ones_like(uu)], -1)
+    d = dc @ T[:3, :3].T
+    o = T[:3, 3]
+    t = (2.5 + 0.3 * o[0] - o[2]) / (d[..., 2] - 0.3 * d[..., 0])  # o + t d on the wall; t = camera depth
+    t_panel = (1.2 - o[2]) / d[..., 2]
+    x_panel = o[0] + t_panel * d[..., 0]
+    t = np.where((x_panel > -0.2) & (x_panel < 0.4), t_panel, t)
+    p = o + t[..., None] * d
+    n = TEX.shape[0]
+    g = cv2.remap(TEX, ((p[..., 0] + p[..., 2] + 3) / 6 * (n - 1)).astype(np.float32),
+                  ((p[..., 1] + 3) / 6 * (n - 1)).astype(np.float32), cv2.INTER_LINEAR)
+    return np.repeat(g[..., None], 3, 2), t.astype(np.float32)
+
+
+FRAMES = [_render(_camera(i)) for i in range(10)]
+CFG = BackendConfig(features=400, window=4, keyframe_max_gap=4)
+
+
+def _run(be, frames, start=0, static=None):
+    return [be.track(start + i, rgb, d, static) for i, (rgb, d) in enumerate(frames)]
+
+
+def test_tracks_a_rendered_sequence_with_keyframes():
+    be = Backend(INTR, CFG)
+    outs = _run(be, FRAMES)
+    assert outs[0].keyframe and outs[0].reason == "first"
+    assert not any(o.lost for o in outs) and all(o.inliers >= 100 for o in outs[1:])
+    for i, o in enumerate(outs):  # the first pose is the identity, as the truth's
+        assert np.linalg.norm(o.pose_c2w[:3, 3] - _camera(i)[:3, 3]) < 0.01, i
+    kfs = be.keyframe_poses()
+    assert 0 in kfs and 2 <= len(kfs) <= 6  # the policy fired (gap 4 at most), not every frame
+    for f, T in kfs.items():
+        assert np.linalg.norm(T[:3, 3] - _camera(f)[:3, 3]) < 0.01
+    assert be.trajectory().shape == (10, 4, 4)
+
+
+def test_keyframe_policy():
+    assert need_keyframe(0, 0, 0, 0, 0, 0.75, 30) == (True, "first")
+    assert need_keyframe(200, 300, 3, 10, 5, 0.75, 30)[0]  # 200 < 0.75 * 300
+    assert not need_keyframe(260, 300, 3, 10, 5, 0.75, 30)[0]
+    assert need_keyframe(260, 300, 30, 10, 5, 0.75, 30)[0]  # max gap
+    assert need_keyframe(80, 100, 3, 90, 5, 0.75, 30)[0]  # few tracked, many new close points
+    assert not need_keyframe(10, 300, 3, 10, 5, 0.75, 30)[0]  # too few to be a keyframe at all
+    assert not need_keyframe(150, 300, 3, 10, 1, 0.75, 30)[0]  # one keyframe: ORB-SLAM's 0.4
+
+
+def test_lost_when_too_few_static_matches():
+    be = Backend(INTR, CFG)
+    _run(be, FRAMES[:3])
+    v1 = be.last_pose @ np.linalg.inv(be.prev_pose)
+    blank = np.zeros((H, W), bool)
+    blank[:40, :40] = True  # almost everything masked: a few keypoints at most
+    out = be.track(3, *FRAMES[3], blank)
+    assert out.lost and out.reason.startswith("lost:") and not out.keyframe and out.inliers == 0
+    assert np.allclose(out.pose_c2w, v1 @ be.prev_pose)  # constant velocity, no jump
+    assert not be.track(4, *FRAMES[4]).lost  # and it picks up again
+
+
+def test_masked_pixels_never_create_landmarks():
+    static = np.ones((H, W), bool)
+    static[:, : W // 2] = False  # left half dynamic
+    be = Backend(INTR, CFG)
+    _run(be, FRAMES[:6], static=static)
+    assert be.lm.n_alive > 50
+    assert (be.lm.obs_uv[:, 0] >= W // 2 - 0.5).all()  # every observation on a static pixel
+    for k, f in enumerate(be.kf_frame):
+        created = be.lm.first_kf == k
+        uv = (be.lm.pos[created] - _camera(f)[:3, 3]) @ _camera(f)[:3, :3]
+        assert (FOC * uv[:, 0] / uv[:, 2] + W / 2 > W // 2 - 2).all()
+
+
+def test_state_dict_round_trip_continues_identically():
+    straight = Backend(INTR, CFG)
+    ref = _run(straight, FRAMES)
+    first = Backend(INTR, CFG)
+    _run(first, FRAMES[:5])
+    state = {k: np.array(v) for k, v in first.state_dict().items()}
+    assert all(isinstance(v, np.ndarray) for v in state.values())
+    resumed = Backend(INTR, CFG)
+    resumed.load_state_dict(state)
+    rest = _run(resumed, FRAMES[5:], start=5)
+    for a, b in zip(ref[5:], rest):
+        assert np.array_equal(a.pose_c2w, b.pose_c2w) and a.keyframe == b.keyframe and a.inliers == b.inliers
+    assert np.array_equal(straight.trajectory(), resumed.trajectory())
+
+
+@pytest.mark.parametrize("bad", ["features=0", "window=1"])
+def test_config_rules(bad):
+    from dynslam_cli.config.fields import rule_of
+    import dataclasses
+
+    key, value = bad.split("=")
+    f = {x.name: x for x in dataclasses.fields(BackendConfig)}[key]
+    assert rule_of(f).violation(int(value)) is not None

@@ -1,0 +1,89 @@
+"""Frame tracking against landmarks (dynslam_cli.backend.tracking): robust pose-only optimisation,
+matching by projection, lost when too few matches."""
+
+import numpy as np
+
+from dynslam_cli.backend.features import Keypoints, project
+from dynslam_cli.backend.tracking import Camera, optimize_pose, search_by_projection, track_frame
+
+CAM = Camera(300.0, 300.0, 160.0, 120.0, 320, 240, 300.0 * 0.08)
+
+
+def _pose(rx, ry, t):
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xy", [rx, ry]).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def _scene(n=300, seed=0):
+    """World points in front of the camera at ``truth`` and their noisy keypoints."""
+    rng = np.random.default_rng(seed)
+    truth = _pose(0.05, -0.08, [0.2, -0.1, 0.3])
+    uv0, z0 = rng.uniform([20, 20], [300, 220], (n, 2)), rng.uniform(1.5, 4.0, n)  # inside the image
+    pc = np.stack([(uv0[:, 0] - CAM.cx) / CAM.fx * z0, (uv0[:, 1] - CAM.cy) / CAM.fy * z0, z0], 1)
+    X = pc @ truth[:3, :3].T + truth[:3, 3]
+    uv, z = project(truth, X, CAM.K)
+    kp = Keypoints(uv + rng.normal(0, 0.5, uv.shape), rng.integers(0, 256, (n, 32), dtype=np.uint8),
+                   z * (1 + rng.normal(0, 0.002, n)), np.zeros(n, np.int64))
+    return truth, X, kp, rng
+
+
+def _errors(T, truth):
+    dR = T[:3, :3].T @ truth[:3, :3]
+    ang = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
+    return np.linalg.norm(T[:3, 3] - truth[:3, 3]), ang
+
+
+def test_pose_only_recovers_known_pose_with_30_percent_outliers():
+    truth, X, kp, rng = _scene()
+    bad = rng.random(len(X)) < 0.3
+    kp.uv[bad] = rng.uniform([0, 0], [320, 240], (bad.sum(), 2))  # wrong matches anywhere in the image
+    kp.depth[bad[:len(X)] & (rng.random(len(X)) < 0.5)] = 0.0  # some without depth: reprojection only
+    start = _pose(0.0, 0.0, [0.25, -0.05, 0.25])  # 8 cm and 5 degrees off
+    T, inl = optimize_pose(CAM, start, X, kp, huber=2.8)
+    dt, da = _errors(T, truth)
+    assert dt < 0.005 and da < 0.1, (dt, da)
+    assert (inl & bad).sum() <= 0.05 * bad.sum() and (inl & ~bad).sum() >= 0.95 * (~bad).sum()
+    plain, _ = optimize_pose(CAM, start, X, kp, huber=1e6, rounds=1)  # no kernel, no gate: pulled away
+    assert _errors(plain, truth)[0] > 5 * dt
+
+
+def test_search_by_projection_finds_the_right_keypoints():
+    truth, X, kp, rng = _scene(200, seed=1)
+    des = kp.des.copy()
+    des[:, 0] ^= 1  # one bit off: still the nearest descriptor
+    perm = rng.permutation(len(X))
+    shuffled = kp.subset(perm)
+    guess = truth @ _pose(0.0, 0.003, [0.01, 0.0, 0.0])
+    lm_rows, kp_rows, vis = search_by_projection(CAM, guess, X, des, np.ones(len(X)), shuffled, radius=15.0)
+    assert vis.all() and len(lm_rows) >= 190
+    assert np.array_equal(perm[kp_rows], lm_rows)  # each keypoint matched to its own landmark
+    assert len(np.unique(kp_rows)) == len(kp_rows)
+
+
+def test_track_frame_from_a_motion_guess_and_lost_when_too_few():
+    truth, X, kp, _ = _scene(250, seed=2)
+    ids = np.arange(1000, 1000 + len(X))
+    guess = truth @ _pose(0.01, 0.0, [0.03, 0.0, -0.02])
+    one = lambda rows, dist: np.ones(len(rows))  # noqa: E731
+    tr = track_frame(CAM, guess, kp, ids, X, kp.des, one, 15.0, 2.8, 20, seed=0)
+    assert not tr.lost and tr.reason == "motion" and len(tr.lm) >= 240
+    assert _errors(tr.pose, truth)[0] < 0.005
+    assert np.array_equal(np.sort(tr.lm), np.sort(ids[tr.kp]))
+    few = kp.subset(np.arange(12))
+    tr = track_frame(CAM, guess, few, ids, X, kp.des, one, 15.0, 2.8, 20, seed=0)
+    assert tr.lost and tr.reason.startswith("lost:") and len(tr.lm) == 0
+    assert np.array_equal(tr.pose, guess)  # the caller's constant-velocity pose, no jump
+
+
+def test_track_frame_relocalises_far_from_the_guess():
+    truth, X, kp, _ = _scene(250, seed=3)
+    ids = np.arange(len(X))
+    guess = truth @ _pose(0.0, 0.5, [0.6, 0.0, 0.0])  # far beyond any search radius
+    one = lambda rows, dist: np.ones(len(rows))  # noqa: E731
+    tr = track_frame(CAM, guess, kp, ids, X, kp.des, one, 15.0, 2.8, 20, seed=0)
+    assert not tr.lost and tr.reason == "relocalised"
+    assert _errors(tr.pose, truth)[0] < 0.005
