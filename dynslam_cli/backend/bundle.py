@@ -67,6 +67,10 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     use = np.isin(obs_kf, kfs) & (obs_lm < len(row))
     use[use] = row[obs_lm[use]] >= 0
     sel = np.flatnonzero(use)
+    # a landmark observed once in the window constrains no pose: it is left out of the graph and
+    # moves rigidly with its keyframe (its optimum), which makes the graph several times smaller
+    n_seen = np.bincount(row[obs_lm[sel]], minlength=len(ids))
+    multi = n_seen >= 2
     X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731
     L = lambda j: gtsam.symbol("l", int(j))  # noqa: E731
     Kst = gtsam.Cal3_S2Stereo(cam.fx, cam.fy, 0.0, cam.cx, cam.cy, cam.bf / cam.fx)
@@ -84,18 +88,20 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     values = gtsam.Values()
     for k in kfs:
         values.insert(X(k), gtsam.Pose3(np.asarray(poses[int(k)], np.float64)))
-    for j, p in zip(ids, pos):
+    for j, p in zip(ids[multi], pos[multi]):
         values.insert(L(j), np.asarray(p, np.float64))
-    factors = []
+    in_graph = multi[row[obs_lm[sel]]]
+    factors = {}
     oct_ = np.clip(obs_octave[sel], 0, 15)
-    for k, j, (u, v), d, o in zip(obs_kf[sel], obs_lm[sel], obs_uv[sel], obs_depth[sel], oct_):
+    for i in np.flatnonzero(in_graph):
+        k, j, (u, v), d, o = obs_kf[sel[i]], obs_lm[sel[i]], obs_uv[sel[i]], obs_depth[sel[i]], oct_[i]
         if d > 0:
             f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - cam.bf / d, v), noise_s[o], X(k), L(j), Kst)
         else:
             f = gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), noise_m[o], X(k), L(j), Km)
-        factors.append(f)
+        factors[i] = f
     ordering = gtsam.Ordering()
-    for j in ids:
+    for j in ids[multi]:
         ordering.push_back(L(j))
     for k in kfs:
         ordering.push_back(X(k))
@@ -104,7 +110,7 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
         graph = gtsam.NonlinearFactorGraph()
         for k in fixed:
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(np.asarray(poses[k], np.float64)), anchor))
-        for i in np.flatnonzero(active):
+        for i in np.flatnonzero(active & in_graph):
             graph.add(factors[i])
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(n_iter))
@@ -114,12 +120,27 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
         out = opt.optimize()
         return out, e0, graph.error(out)
 
+    kf_row = np.full(int(kfs.max()) + 1, -1, np.int64)
+    kf_row[kfs] = np.arange(len(kfs))
+    obs_row = kf_row[obs_kf[sel]]
+    T_old = np.stack([np.asarray(poses[int(k)], np.float64) for k in kfs])
+    single_kf = np.zeros(len(ids), np.int64)  # the keyframe row of each single observation
+    single_kf[row[obs_lm[sel]][~in_graph]] = obs_row[~in_graph]
+
+    def positions(values):
+        T_new = np.stack([values.atPose3(X(k)).matrix() for k in kfs])
+        out = np.empty_like(np.asarray(pos, np.float64))
+        if multi.any():
+            out[multi] = np.stack([values.atPoint3(L(j)) for j in ids[multi]])
+        if (~multi).any():  # X' = T_new T_old^-1 X, with the keyframe each was seen from
+            M = T_new[single_kf[~multi]] @ np.linalg.inv(T_old[single_kf[~multi]])
+            out[~multi] = np.einsum("mij,mj->mi", M[:, :3, :3], pos[~multi]) + M[:, :3, 3]
+        return T_new, out
+
     def gate(values):
-        Tcw = np.stack([np.linalg.inv(values.atPose3(X(k)).matrix()) for k in kfs])
-        Xs = np.stack([values.atPoint3(L(j)) for j in ids]) if len(ids) else np.zeros((0, 3))
-        kf_row = {int(k): r for r, k in enumerate(kfs)}
-        T = Tcw[np.array([kf_row[int(k)] for k in obs_kf[sel]], np.int64)] if len(sel) else np.zeros((0, 4, 4))
-        c2 = observation_chi2(cam, T, Xs[row[obs_lm[sel]]], obs_uv[sel], obs_depth[sel], obs_octave[sel])
+        T_new, Xs = positions(values)
+        c2 = observation_chi2(cam, np.linalg.inv(T_new)[obs_row], Xs[row[obs_lm[sel]]], obs_uv[sel],
+                              obs_depth[sel], obs_octave[sel])
         return c2 > np.where(obs_depth[sel] > 0, th ** 2, th_m ** 2)
 
     active = np.ones(len(sel), bool)
@@ -131,6 +152,6 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     outlier = np.zeros(len(obs_kf), bool)
     outlier[sel[bad]] = True
     new_poses = {k: values.atPose3(X(k)).matrix() for k in optimise}
-    new_pos = np.stack([values.atPoint3(L(j)) for j in ids]) if len(ids) else np.zeros((0, 3))
+    new_pos = positions(values)[1]
     return BundleResult(new_poses, np.asarray(ids), new_pos, outlier, float(cost0), float(cost),
                         (time.perf_counter() - t0) * 1000)
