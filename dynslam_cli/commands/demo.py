@@ -17,7 +17,8 @@ def register(app: typer.Typer) -> None:
         out: Optional[Path] = typer.Option(None, "--out", help="Run folder (default results/runs/synth/<preset>/dynamic, "
                                            "replaced by each demo)."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in an --out folder that holds one."),
-        threads: Optional[int] = typer.Option(None, "--threads", help="Torch/numba/onnxruntime threads (default all cores)."),
+        threads: Optional[int] = typer.Option(None, "--threads", help="Torch/numba/onnxruntime threads (default 1: "
+                                              "more lose to contention on a shared machine)."),
         sets: Optional[List[str]] = c.SetOpt,
         seed: Optional[int] = typer.Option(None, "--seed", help="Random seed of the run (default run.seed)."),
         data_root: Optional[Path] = c.DataRootOpt,
