@@ -593,7 +593,9 @@ class SLAM:
             else:
                 T = base_t
             own = own_a[it]
-            Ts = T[own]
+            # index_select, not T[own]: its backward adds the rays' pose gradients in a fixed order
+            # (indexing's scatter-adds them with atomic adds across threads: not repeatable)
+            Ts = T.index_select(0, own)
             o = Ts[:, :3, 3]
             d = (Ts[:, :3, :3] @ dirs_a[it][..., None])[..., 0]
             # the smoothness cube's grid features come from the rays' grid call (one table gradient)

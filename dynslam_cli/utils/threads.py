@@ -13,6 +13,12 @@ the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66
 selects ``workqueue`` for its behaviour under load; ``NUMBA_THREADING_LAYER`` set by the user wins.
 ``workqueue`` must not launch kernels from several Python threads at once (numba aborts then);
 dynslam's own parallelism uses processes.
+
+Determinism: with the same seed, thread count and machine a run is bit-for-bit repeatable
+(tests/test_determinism.py).  :func:`seed_everything` switches torch to its deterministic
+algorithms: on CPU, autograd's backward of indexing with repeated indices (``T[own]`` in bundle
+adjustment) otherwise scatter-adds with atomic float adds from several threads, in an order that
+changes from run to run.  :func:`set_threads` picks the numba layer before it starts numba's pool.
 """
 
 from __future__ import annotations
@@ -41,15 +47,29 @@ def choose_numba_layer() -> Optional[str]:
     return SHARED_LAYER
 
 
+def deterministic_torch() -> None:
+    """Torch's deterministic algorithms (warnings, not errors, for an op that has none), without
+    filling new tensors with NaN (every kernel here writes all of its output); cuBLAS gets the
+    workspace setting its deterministic mode needs unless the user set one."""
+    import torch
+
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.utils.deterministic.fill_uninitialized_memory = False
+
+
 def seed_everything(seed: int) -> None:
+    """Seed Python's, numpy's and torch's global generators and make torch deterministic."""
     import torch
 
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
+    deterministic_torch()
 
 
 def set_threads(n: int) -> int:
+    """Torch's and numba's thread counts (``n`` <= 0: all cores); returns the count."""
     import torch
 
     n = int(n) if n and n > 0 else (os.cpu_count() or 1)
@@ -57,6 +77,7 @@ def set_threads(n: int) -> int:
     try:
         import numba
 
+        choose_numba_layer()  # set_num_threads starts numba's pool: the layer must be chosen first
         numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
     except Exception:  # numba absent or threads fixed: the torch setting still holds
         pass
