@@ -320,3 +320,38 @@ def test_runs_choose_workqueue_unless_the_user_chose(monkeypatch):
     monkeypatch.setenv("NUMBA_THREADING_LAYER", "omp")
     assert threads.choose_numba_layer() == "omp"
     assert numba_kernels.numba.config.THREADING_LAYER == "default"  # the user's setting is numba's to read
+
+
+# ---------------------------------------------------------------------------- determinism
+@pytest.mark.parametrize("layout", [("levels", "levels"), ("points", "points"), ("levels", "jacobian")])
+def test_numba_values_and_gradients_repeat_bitwise_at_any_thread_count(layout, monkeypatch):
+    # many points on a small table (every entry hit from many points, on both threads' shares):
+    # the table gradient is summed per level by the one thread that owns the level, in point
+    # order, and the x gradient per point in level order, so neither depends on scheduling or on
+    # the thread count; the frozen-table case (tracking) takes the x-gradient-only kernels
+    monkeypatch.setattr(numba_kernels, "FORWARD_PARALLEL", layout[0])
+    monkeypatch.setattr(numba_kernels, "X_GRAD_PARALLEL", layout[1])
+    g = make_grid("numba", n_levels=6, log2_hashmap_size=8, base_resolution=4, finest_resolution=200)
+    x = tricky_points(20000, res=tuple(g.resolutions[:3]))
+    go = torch.randn(x.shape[0], g.out_dim, generator=torch.Generator().manual_seed(5))
+
+    def once(frozen: bool) -> bytes:
+        g.embeddings.requires_grad_(not frozen)
+        xx = x.clone().requires_grad_()
+        y = g(xx)
+        grads = torch.autograd.grad(y, (xx,) if frozen else (xx, g.embeddings), go)
+        assert all(t.abs().max() > 0 for t in grads)
+        return b"".join(t.numpy().tobytes() for t in (y.detach(), *grads))
+
+    old = torch.get_num_threads()
+    try:
+        for frozen in (False, True):
+            got = []
+            for n in (2, 2, 1, 2):
+                torch.set_num_threads(n)
+                got.append(once(frozen))
+                assert numba_kernels.numba.get_num_threads() == n
+            assert len(set(got)) == 1, (frozen, [hash(b) for b in got])
+    finally:
+        torch.set_num_threads(old)
+        g.embeddings.requires_grad_(True)
