@@ -125,3 +125,15 @@ def test_a_run_lost_throughout_is_scored_origin_aligned(demo, tmp_path):
     assert ate.alignment == "origin" and ate.rmse_still_m > 0
     assert ate.rmse_m == pytest.approx(ate.rmse_still_m, rel=1e-6)  # it scores exactly what standing still does
     assert json.loads((run / "ate.json").read_text())["alignment"] == "origin"
+
+
+def test_second_demo_replaces_its_own_folder(demo, tmp_path):
+    root = demo[2]
+    args = ["demo", "--data-root", str(root / "data"), "--threads", "1", "-q"]
+    args += _sets([f"run.results_root={tmp_path}"])
+    for _ in range(2):  # the default folder needs no --overwrite
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 0, res.output
+    out = tmp_path / "synth" / "walker" / "dynamic"
+    assert json.loads((out / "demo_report.json").read_text())["out_dir"] == str(out)
+    assert f"dynslam view {out}" in res.stdout
