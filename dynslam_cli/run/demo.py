@@ -29,9 +29,6 @@ from dynslam_cli.utils.io import write_json_atomic, write_text_atomic
 DEMO_SETS = ["synth.width=320", "synth.height=240", "synth.frames=100", "mapping.first_iters=150",
              "tracking.ignore_border=10", "run.threads=1", "motion.threads=1"]
 
-# What the demo adds to a run folder (run_sequence's overwrite deletes the run's own files).
-REPORT_FILES = ("report.md", "demo_report.json")
-
 
 @dataclass
 class DemoResult:
@@ -137,8 +134,6 @@ def run_demo(preset: str = "walker", out: Optional[Path] = None, data_root: Opti
         render_synth(preset, cfg, scene, progress=progress)
         rendered, render_s = True, time.perf_counter() - t
         say(f"rendered {spec} in {render_s:.0f} s")
-    for name in REPORT_FILES:  # an earlier demo's report must not outlive a run that fails
-        (out_dir / name).unlink(missing_ok=True)
     say(f"running {spec} in dynamic mode ({s.frames} frames, {n_threads} thread{'s' * (n_threads != 1)}) ...")
     t = time.perf_counter()
     # the demo's own folder is replaced every time; a given --out was checked above
