@@ -130,3 +130,53 @@ def test_config_rules(bad):
     key, value = bad.split("=")
     f = {x.name: x for x in dataclasses.fields(BackendConfig)}[key]
     assert rule_of(f).violation(int(value)) is not None
+
+
+def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
+    """With defer, the keyframe waits for commit(): no landmark on pixels the final mask drops, and
+    each landmark carries the instance id under it, so forget() removes an instance's landmarks."""
+    be = Backend(INTR, CFG)
+    rgb, d = FRAMES[0]
+    out = be.track(0, rgb, d, None, defer=True)
+    assert out.keyframe and len(be.kf_frame) == 0  # due, not yet inserted
+    ids = np.zeros((H, W), np.int32)
+    ids[:, W // 2:] = 7  # the right half is instance 7
+    static = np.ones((H, W), bool)
+    static[:, : W // 4] = False  # the final mask drops the left quarter
+    inserted, _, pose = be.commit(static, ids)
+    assert inserted and len(be.kf_frame) == 1 and np.allclose(pose, np.eye(4))
+    u = be.lm.obs_uv[:, 0]
+    assert len(u) > 50 and (u >= W // 4 - 1).all()  # nothing made on the dropped quarter
+    right = be.lm.origin == 7
+    assert right.any() and (be.lm.origin[~right] == 0).all()
+    assert be.commit(static, ids) == (False, 0.0, None)  # nothing pending any more
+    n = be.lm.n_alive
+    assert be.forget(5, [7]) == 0  # frame 5 is no keyframe
+    gone = be.forget(0, [7])
+    assert gone == int(right.sum()) and be.lm.n_alive == n - gone and not be.lm.alive[right].any()
+    # the next frames still track on what is left
+    outs = [be.track(i, *FRAMES[i], None) for i in range(1, 4)]
+    assert not any(o.lost for o in outs)
+
+
+def test_correct_last_moves_the_motion_model():
+    be = Backend(INTR, CFG)
+    _run(be, FRAMES[:3])
+    T = _camera(2).copy()
+    T[:3, 3] += [0.0, 0.05, 0.0]
+    be.correct_last(T)
+    assert np.allclose(be.trajectory()[-1], T) and np.allclose(be.last_pose, T)
+
+
+def test_not_initialised_starts_where_the_caller_put_the_camera():
+    """Frames with too few keypoints are lost; the caller's corrected poses place the first keyframe."""
+    be = Backend(INTR, CFG)
+    blank = (np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.float32))
+    out = be.track(0, *blank)
+    assert out.lost and "not initialised" in out.reason and len(be.kf_frame) == 0
+    be.correct_last(_camera(0))
+    be.track(1, *blank)
+    be.correct_last(_camera(1))
+    out = be.track(2, *FRAMES[2])
+    assert not out.lost and out.reason == "first"
+    assert np.linalg.norm(out.pose_c2w[:3, 3] - _camera(2)[:3, 3]) < 1e-3  # constant velocity from frames 0, 1

@@ -94,7 +94,7 @@ def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
 
 def _bare_loop(keyframes, intr):
     loop = DynamicLoop.__new__(DynamicLoop)
-    loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr)
+    loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr, forget_landmarks=lambda fid, ids: 0)
     loop.mm = SimpleNamespace(m=SimpleNamespace(depth_threshold=0.3))
     loop.occlusion_aware = True
     return loop

@@ -4,7 +4,12 @@ Per frame: ORB keypoints on static pixels → constant-velocity guess → match 
 landmarks of the reference keyframe's covisible keyframes) → robust pose-only optimisation (wider
 search, then PnP relocalisation, else ``lost``) → keyframe decision by overlap → on a keyframe:
 its observations, new landmarks from its unmatched keypoints with depth, culling, and local bundle
-adjustment of the newest keyframes' window (gtsam)."""
+adjustment of the newest keyframes' window (gtsam).
+
+With ``track(..., defer=True)`` the keyframe is inserted by :meth:`Backend.commit`, which takes the
+frame's final static mask (the motion check after tracking may have found more movers) and instance
+ids: no landmark is made on a pixel known to move by then, and each landmark remembers the instance
+it was made on, so :meth:`Backend.forget` removes the landmarks of an instance found to move later."""
 
 from __future__ import annotations
 
@@ -16,7 +21,7 @@ import numpy as np
 
 from dynslam_cli.backend.bundle import local_bundle_adjustment
 from dynslam_cli.backend.config import BackendConfig
-from dynslam_cli.backend.features import Detector, Keypoints, backproject
+from dynslam_cli.backend.features import Detector, Keypoints, backproject, pixel_index
 from dynslam_cli.backend.keyframes import need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.tracking import Camera, track_frame
@@ -59,22 +64,32 @@ class Backend:
         self.lost_run = 0
         self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
         self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
+        self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
 
     # -- public ------------------------------------------------------------------------------------
-    def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None
-              ) -> TrackOutcome:
+    def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
+              defer: bool = False) -> TrackOutcome:
         """Track frame ``index`` (RGB H×W×3 uint8, depth H×W metres with 0 = none, ``static_mask``
-        H×W bool: True where the pixel may be used; None = all)."""
+        H×W bool: True where the pixel may be used; None = all).  ``keyframe`` in the outcome: the
+        frame became a keyframe (local BA ran) or, with ``defer``, is due to become one at
+        :meth:`commit`."""
         t0 = time.perf_counter()
+        self._pending = None
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
         if len(self.kf_frame) == 0:
+            # the first keyframe: at the first pose, or where the caller's corrections of the frames
+            # tracked without it (correct_last) put the camera
+            start = self.first_pose.copy() if self.last_pose is None else self._predict()
+            self._advance(start)
             if n_depth < 2 * self.cfg.min_matches:
-                return self._out(self.first_pose.copy(), 0, True, False,
+                return self._out(start, 0, True, False,
                                  f"lost: not initialised ({n_depth} static keypoints with depth)", t0)
-            self._insert_keyframe(index, self.first_pose.copy(), kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
-            self._advance(self.first_pose.copy())
-            return self._out(self.first_pose.copy(), n_depth, False, True, "first", t0)
+            out = self._out(start, n_depth, False, True, "first", t0)
+            self._pending = (int(index), start.copy(), kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
+            if not defer:
+                self.commit()
+            return out
         guess = self._predict()
         ids = self.lm.seen_by(self._local_keyframes(2 * self.cfg.window))
         tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
@@ -103,15 +118,63 @@ class Backend:
         new_kf, why = need_keyframe(len(tr.lm), ref_tracked, index - self.last_kf_index,
                                     int((untracked & (kp.depth > 0)).sum()), n_kf, self.cfg.keyframe_ratio,
                                     self.cfg.keyframe_max_gap)
-        pose = tr.pose
-        ba_ms = 0.0
-        if new_kf:
-            t1 = time.perf_counter()
-            pose = self._insert_keyframe(index, tr.pose, kp, tr.lm, tr.kp)
-            ba_ms = (time.perf_counter() - t1) * 1000
-        self._advance(pose)
+        self._advance(tr.pose)
         reason = tr.reason + (f"; keyframe ({why})" if new_kf else "")
-        return self._out(pose, len(tr.lm), False, new_kf, reason, t0, ba_ms=ba_ms)
+        out = self._out(tr.pose, len(tr.lm), False, new_kf, reason, t0)
+        if new_kf:
+            self._pending = (int(index), tr.pose.copy(), kp, tr.lm, tr.kp)
+            if not defer:
+                inserted, ba_ms, pose = self.commit()
+                out.pose_c2w, out.ba_ms = pose, ba_ms
+        return out
+
+    def commit(self, static_mask: Optional[np.ndarray] = None, instance_ids: Optional[np.ndarray] = None
+               ) -> tuple[bool, float, Optional[np.ndarray]]:
+        """Insert the keyframe the last :meth:`track` found due, without its keypoints on pixels
+        that ``static_mask`` (H×W bool, None = keep all) no longer calls static; ``instance_ids``
+        (H×W int) tags its new landmarks for :meth:`forget`.  Returns (inserted, BA ms, the
+        frame's bundle-adjusted pose or None)."""
+        if self._pending is None:
+            return False, 0.0, None
+        index, pose, kp, lm_ids, kp_rows = self._pending
+        self._pending = None
+        t1 = time.perf_counter()
+        keep = np.ones(len(kp), bool)
+        if static_mask is not None and len(kp):
+            keep = np.asarray(static_mask, bool)[pixel_index(kp.uv, *static_mask.shape)]
+        origin = None
+        if instance_ids is not None and len(kp):
+            origin = np.asarray(instance_ids)[pixel_index(kp.uv, *instance_ids.shape)].astype(np.int64)
+        pair = keep[kp_rows] if len(kp_rows) else np.zeros(0, bool)
+        rows = np.flatnonzero(keep)
+        remap = np.full(len(kp), -1, np.int64)
+        remap[rows] = np.arange(len(rows))
+        kept_kp = kp.subset(rows)
+        refined = self._insert_keyframe(index, pose, kept_kp, lm_ids[pair], remap[kp_rows[pair]],
+                                        None if origin is None else origin[rows])
+        kf = len(self.kf_frame) - 1
+        self.frame_ref[-1] = kf  # the frame now stands on its own keyframe
+        self.frame_rel[-1] = np.eye(4)
+        self.last_pose = refined.copy()
+        return True, (time.perf_counter() - t1) * 1000, refined.copy()
+
+    def correct_last(self, pose_c2w: np.ndarray) -> None:
+        """Replace the last tracked frame's pose (a lost frame that the caller tracked otherwise);
+        the motion model continues from it."""
+        if len(self.frame_ref) == 0:
+            return
+        ref = int(self.frame_ref[-1])
+        pose = np.asarray(pose_c2w, np.float64)
+        self.frame_rel[-1] = pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ pose
+        self.last_pose = pose.copy()
+
+    def forget(self, frame_index: int, instance_ids) -> int:
+        """Remove the landmarks that the keyframe of frame ``frame_index`` made on instances
+        ``instance_ids`` (found to move since); returns how many (0 when that frame is no keyframe)."""
+        kf = np.flatnonzero(self.kf_frame == int(frame_index))
+        if len(kf) == 0 or len(instance_ids) == 0:
+            return 0
+        return self.lm.forget(int(kf[0]), instance_ids)
 
     def trajectory(self) -> np.ndarray:
         """Every tracked frame's camera-to-world pose (F×4×4), each composed with its reference
@@ -177,7 +240,7 @@ class Backend:
         return out[:n]
 
     def _insert_keyframe(self, index: int, pose: np.ndarray, kp: Keypoints, lm_ids: np.ndarray,
-                         kp_rows: np.ndarray) -> np.ndarray:
+                         kp_rows: np.ndarray, origin: Optional[np.ndarray] = None) -> np.ndarray:
         """New keyframe: observations of the tracked landmarks, landmarks from the keypoints with
         depth that matched none, culling, local bundle adjustment.  Returns its refined pose."""
         kf = len(self.kf_frame)
@@ -190,7 +253,8 @@ class Backend:
         fresh[kp_rows] = False
         fresh &= kp.depth > 0
         new = kp.subset(fresh)
-        self.lm.create(kf, new, backproject(new, self.cam.K, pose), pose[:3, 3])
+        self.lm.create(kf, new, backproject(new, self.cam.K, pose), pose[:3, 3],
+                       None if origin is None else origin[fresh])
         self.ref_kf = kf
         if kf == 0:
             return pose

@@ -9,14 +9,15 @@ import numpy as np
 
 from dynslam_cli.backend.features import SCALE, Keypoints
 
-_LM = ("pos", "des", "octave", "dist", "first_kf", "visible", "found", "alive")
+_LM = ("pos", "des", "octave", "dist", "first_kf", "origin", "visible", "found", "alive")
 _OBS = ("obs_kf", "obs_lm", "obs_uv", "obs_depth", "obs_octave")
 
 
 class LandmarkMap:
     """``pos`` (N×3 world), ``des`` (N×32), ``octave`` and ``dist`` (pyramid level and camera
     distance when created: the scale it is expected at elsewhere), ``first_kf`` (keyframe id that
-    created it), ``visible`` (frames it projected into), ``found`` (frames it was matched in as
+    created it), ``origin`` (the instance id of the pixel it was created on, -1 = unknown: forgetting
+    an instance that turned out to move removes its landmarks), ``visible`` (frames it projected into), ``found`` (frames it was matched in as
     an inlier), ``alive``.  Observations (one per keyframe that matched it): ``obs_kf``,
     ``obs_lm``, ``obs_uv``, ``obs_depth`` (0 = no depth), ``obs_octave``."""
 
@@ -26,6 +27,7 @@ class LandmarkMap:
         self.octave = np.zeros(0, np.int64)
         self.dist = np.zeros(0)
         self.first_kf = np.zeros(0, np.int64)
+        self.origin = np.zeros(0, np.int64)
         self.visible = np.zeros(0, np.int64)
         self.found = np.zeros(0, np.int64)
         self.alive = np.zeros(0, bool)
@@ -43,9 +45,11 @@ class LandmarkMap:
         return int(self.alive.sum())
 
     # -- creation and observations ------------------------------------------------------------
-    def create(self, kf: int, kp: Keypoints, X: np.ndarray, cam_centre: np.ndarray) -> np.ndarray:
+    def create(self, kf: int, kp: Keypoints, X: np.ndarray, cam_centre: np.ndarray,
+               origin: np.ndarray | None = None) -> np.ndarray:
         """New landmarks at world points ``X`` from keyframe ``kf``'s keypoints ``kp`` (each with
-        depth); returns their ids.  Each starts seen and found once, observed by ``kf``."""
+        depth; ``origin``: the instance id under each, None = unknown); returns their ids.  Each
+        starts seen and found once, observed by ``kf``."""
         n = len(kp)
         ids = np.arange(len(self), len(self) + n)
         self.pos = np.concatenate([self.pos, X])
@@ -53,6 +57,8 @@ class LandmarkMap:
         self.octave = np.concatenate([self.octave, kp.octave])
         self.dist = np.concatenate([self.dist, np.linalg.norm(X - cam_centre, axis=1)])
         self.first_kf = np.concatenate([self.first_kf, np.full(n, kf, np.int64)])
+        org = np.full(n, -1, np.int64) if origin is None else np.asarray(origin, np.int64).reshape(n)
+        self.origin = np.concatenate([self.origin, org])
         self.visible = np.concatenate([self.visible, np.ones(n, np.int64)])
         self.found = np.concatenate([self.found, np.ones(n, np.int64)])
         self.alive = np.concatenate([self.alive, np.ones(n, bool)])
@@ -110,6 +116,15 @@ class LandmarkMap:
         self._keep_obs(~drop)
         bad = self.alive & lost_one & (self.n_obs() < min_left)
         self.kill(bad)
+        return int(bad.sum())
+
+    def forget(self, kf: int, instance_ids) -> int:
+        """Kill the landmarks keyframe ``kf`` created on instances ``instance_ids`` (they turned out
+        to move); returns how many were alive."""
+        bad = self.alive & (self.first_kf == kf) & (self.origin >= 0)
+        bad &= np.isin(self.origin, np.asarray(instance_ids, np.int64))
+        if bad.any():
+            self.kill(bad)
         return int(bad.sum())
 
     def kill(self, bad: np.ndarray) -> None:

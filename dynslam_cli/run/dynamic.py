@@ -54,8 +54,11 @@ class DynamicLoop:
         return self.slam._initial_guess()
 
     def _refresh_keyframes(self) -> int:
-        """Recompute every keyframe's usable rays from the current classifier; returns rays masked."""
+        """Recompute every keyframe's usable rays from the current classifier, and drop the backend
+        landmarks made on instances now called dynamic; returns rays masked."""
         masked = 0
+        for fid in self.mm.keyframes:
+            self.slam.forget_landmarks(fid, self.mm.keyframe_dynamic_ids(fid))
         for kf in self.slam.keyframes:
             if kf.frame_id not in self.mm.keyframes:
                 continue
@@ -252,6 +255,8 @@ class DynamicLoop:
             kf.near_ids = self.near_ids(inst.ids, kf.pixels)
             self.mm.register_keyframe(kf.frame_id, inst)
             self.carve(frame.depth, inst.static_mask)
+        if self.slam.backend_keyframe:  # its landmarks carry these instance ids (forgotten if they move)
+            self.mm.register_keyframe(self.slam.n_frames - 1, inst)
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:

@@ -9,7 +9,12 @@ from dynslam_cli.config.fields import numbers, opt
 
 @dataclass
 class TrackingConfig:
-    iters: int = opt(10, "Adam iterations per frame (20 for harder sequences).", min=0)
+    backend: bool = opt(True, "Poses from the keyframe backend (dynslam_cli/backend: ORB landmarks on static pixels, "
+                        "robust pose-only tracking, gtsam local bundle adjustment); the neural map then trains on "
+                        "those poses without moving them. Off: Co-SLAM's dense tracking against the neural map "
+                        "(tracking.iters) and pose refinement in its bundle adjustment (the paper / coslam presets).")
+    iters: int = opt(10, "Adam iterations per frame of dense tracking against the neural map, when tracking.backend "
+                     "is off (20 for harder sequences).", min=0)
     iters_dynamic: int = opt(-1, "Adam iterations per frame in dynamic mode; -1 = iters.  bonn.yaml sets 0 (the feature "
                              "init's pose is kept): on the crowd clip, dense tracking against a map that still holds "
                              "people the masks missed pulled it away (25.1 cm ATE with 10 iterations, 5.5 with 0).",

@@ -1,5 +1,6 @@
-"""The SLAM system (Co-SLAM core): tracking against a frozen neural map, keyframes with stored
-rays, global bundle adjustment of map and keyframe poses.
+"""The SLAM system: camera poses from the keyframe backend (``tracking.backend``; else Co-SLAM's
+dense tracking against the frozen neural map), keyframes with stored rays, bundle adjustment of the
+neural map (and, without the backend, of the keyframe poses).
 
 Every ray sampler takes a per-pixel mask (H×W bool, True = usable); the dynamic module passes its
 static mask and later refreshes ``keyframes[k].usable``.
@@ -15,6 +16,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from dynslam_cli.backend.backend import Backend
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import backproject, pixel_dirs
 from dynslam_cli.geometry.features import FeatureOdometry, FeatureSet
@@ -115,6 +117,8 @@ class SLAM:
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
         self.last_pnp = None  # PnPResult of the last tracked frame's feature init (diagnostics)
         self._pnp_inliers: dict[int, int] = {}  # frame id -> PnP inliers of its feature init (last two frames)
+        self.backend: Optional[Backend] = None  # the keyframe backend (tracking.backend), made on frame 0
+        self.backend_keyframe = False  # whether the last map() inserted a backend keyframe
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -291,7 +295,7 @@ class SLAM:
     def _detect_features(self, frame, cur: _Current) -> None:
         """ORB keypoints of the current frame on its static pixels, with the depth before the
         data layer's depth cut (``frame.depth_full``) where the frame has it."""
-        if not self.cfg.tracking.feature_init:
+        if not self.cfg.tracking.feature_init or self.cfg.tracking.backend:
             return
         full = getattr(frame, "depth_full", None)
         depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
@@ -360,10 +364,23 @@ class SLAM:
             if self.model is None:
                 b = self.bounds if self.bounds is not None else auto_bounds(frame, self.intr, pose, self.cfg.map.auto_margin)
                 self._build_model(b)
+            if self.cfg.tracking.backend:
+                i = self.intr
+                self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend, first_pose=pose)
+                self._backend_track(frame, cur)
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
         iters = self.tracking_iters
-        init = self._initial_guess(cur)
+        lost = False
+        if self.backend is not None:
+            out = self._backend_track(frame, cur)
+            if not out.lost:
+                return self._finish_track(cur, out.pose_c2w, float("nan"), 0, False, t0)
+            # lost: dense tracking against the neural map from the constant-velocity pose (if it runs)
+            self._event(cur.idx, "lost", out.reason + ("; dense tracking from constant velocity" if iters > 0 else ""))
+            init, lost = out.pose_c2w, True
+        else:
+            init = self._initial_guess(cur)
         tvalid = self._without_edges(cur, cur.valid, tc.edge_margin)
         if len(tvalid) < tc.min_pixels or iters <= 0:
             reason = f"only {len(tvalid)} usable pixels" if iters > 0 else ""
@@ -419,6 +436,28 @@ class SLAM:
             return self._finish_track(cur, init, best_loss, iters, True, t0, bad)
         return self._finish_track(cur, orthonormalize(pose), best_loss, iters, False, t0)
 
+    def _backend_track(self, frame, cur: _Current):
+        """The backend's pose of the current frame (static pixels; the depth before the data layer's
+        depth cut, where the frame has it, as keypoints beyond it still fix the pose).  A keyframe it
+        finds due is inserted by map(), with the frame's final static mask."""
+        full = getattr(frame, "depth_full", None)
+        depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
+        return self.backend.track(cur.idx, cur.rgb_np, depth, cur.mask, defer=True)
+
+    def forget_landmarks(self, frame_id: int, instance_ids) -> int:
+        """Remove the backend landmarks that frame ``frame_id``'s keyframe made on ``instance_ids``
+        (found to move since); 0 without the backend."""
+        return 0 if self.backend is None else self.backend.forget(frame_id, instance_ids)
+
+    def _sync_backend_poses(self) -> None:
+        """Every tracked frame's and keyframe's pose from the backend's bundle-adjusted trajectory."""
+        traj = self.backend.trajectory()
+        for i in range(min(len(traj), len(self.poses))):
+            self.poses[i] = traj[i].copy()
+        for k in self.keyframes:
+            if k.frame_id < len(traj):
+                k.pose_c2w = traj[k.frame_id].copy()
+
     def _event(self, idx: int, kind: str, detail: str) -> None:
         self.events.append({"frame": int(idx), "kind": kind, "detail": detail})
         log.warning("frame %d: tracking %s (%s); using the constant-velocity pose", idx, kind, detail)
@@ -429,6 +468,8 @@ class SLAM:
         cur = self._cur
         if cur is None or cur.idx != self.n_frames - 1 or cur.idx == 0 or self._undo is None:
             raise DynslamError("SLAM.retrack() must follow track() of the same frame (not the first)")
+        if self.backend is not None:  # the backend's robust pose stands; the corrected mask reaches map()
+            return TrackResult(self.poses[-1].copy(), float("nan"), 0, False, 0.0, "backend pose kept")
         for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
             lst.pop()
         self._prev_depth, self._feat_refs = self._undo
@@ -437,13 +478,16 @@ class SLAM:
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
         self._undo = (self._prev_depth, list(self._feat_refs))
-        self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
-        self._update_feature_ref(cur)
+        if self.backend is not None and cur.idx > 0:  # a lost frame's pose came from dense tracking
+            self.backend.correct_last(pose)
+        if self.backend is None:
+            self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
+            self._update_feature_ref(cur)
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
         kf_id = (cur.idx // ke) * ke
         self.kf_of.append(kf_id)
-        if kf_id < cur.idx:
+        if kf_id < cur.idx and self.backend is None:
             self.rel.append(inv_np(self.poses[kf_id]) @ self.poses[cur.idx])
         else:
             self.rel.append(None)
@@ -459,12 +503,18 @@ class SLAM:
         if mask is not None and (cur.mask is None or not np.array_equal(np.asarray(mask, bool), cur.mask)):
             cur.valid = valid_pixels(cur.depth_np, mask, self.cfg.tracking.ignore_border)
             cur.mask = np.asarray(mask, bool)
-            if self.cfg.tracking.icp_init:  # the next frame's ICP aligns to the static pixels as now known
+            if self.cfg.tracking.icp_init and self.backend is None:  # the next frame's ICP aligns to the static pixels
                 self._prev_depth = self._icp_depth(cur)
             if self._feat_refs and self._feat_refs[-1][0] == cur.idx:  # so do the next frames' features
                 self._feat_refs[-1] = (cur.idx, self._feat_refs[-1][1].masked(cur.mask))
         mc = self.cfg.mapping
         t0 = time.perf_counter()
+        self.backend_keyframe = False
+        if self.backend is not None:  # the keyframe the backend found due, with the final static mask
+            self.backend_keyframe, _, refined = self.backend.commit(cur.mask, instance_ids)
+            if self.backend_keyframe:
+                self._sync_backend_poses()
+                self.poses[cur.idx] = refined
         ba = False
         iters, loss = 0, float("nan")
         if cur.idx == 0:
@@ -478,7 +528,7 @@ class SLAM:
         if cur.idx % mc.keyframe_every == 0:
             self._add_keyframe(cur, frame, instance_ids)
             kf = True
-        if not ba and not kf:
+        if not ba and not kf and not self.backend_keyframe:
             return None
         return MapResult(kf, ba, iters, float(loss), (time.perf_counter() - t0) * 1000)
 
@@ -555,7 +605,7 @@ class SLAM:
                 opt_mask[0] = 0
             if not mc.optimize_current:
                 opt_mask[-1] = 0
-        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and self.lr_pose > 0
+        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and self.lr_pose > 0 and self.backend is None
         xi = torch.zeros(n_p, 6, device=self.device, requires_grad=optimise_poses)
         pose_opt = torch.optim.Adam([xi], lr=self.lr_pose) if optimise_poses else None
         S = mp.samples_free + mp.samples_surface
@@ -628,6 +678,8 @@ class SLAM:
         keyframes and the last tracked frame (the periodic BA's code path); None when off."""
         iters = int(self.cfg.mapping.final_iters)
         cur = self._cur
+        if self.backend is not None:
+            self._sync_backend_poses()
         if iters <= 0 or cur is None or cur.idx != self.n_frames - 1 or cur.idx == 0 or not self.keyframes:
             return None
         t0 = time.perf_counter()
@@ -644,7 +696,10 @@ class SLAM:
 
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> np.ndarray:
-        """(N, 4, 4) c2w; non-keyframes re-expressed relative to their refined keyframe."""
+        """(N, 4, 4) c2w; non-keyframes re-expressed relative to their refined keyframe (the
+        backend's bundle-adjusted trajectory when it tracks)."""
+        if self.backend is not None:
+            return self.backend.trajectory()[:self.n_frames].copy()
         out = np.zeros((self.n_frames, 4, 4))
         for i in range(self.n_frames):
             out[i] = self._pose_of(i)
@@ -729,6 +784,7 @@ class SLAM:
             "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
             "feat_refs": [{"frame": fid, **fs.to_dict()} for fid, fs in self._feat_refs],
             "pnp_inliers": dict(self._pnp_inliers),
+            "backend": None if self.backend is None else self.backend.state_dict(),
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -753,3 +809,8 @@ class SLAM:
         refs = d.get("feat_refs", [] if old is None else [old])
         self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in refs]
         self._pnp_inliers = {int(k): int(v) for k, v in d.get("pnp_inliers", {}).items()}
+        self.backend = None
+        if d.get("backend") is not None:
+            i = self.intr
+            self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend)
+            self.backend.load_state_dict(d["backend"])
