@@ -25,8 +25,8 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig, metadata={"help": "The neural map."})
     tracking: TrackingConfig = field(default_factory=TrackingConfig, metadata={"help": "Camera tracking."})
     mapping: MappingConfig = field(default_factory=MappingConfig, metadata={"help": "Keyframes and bundle adjustment."})
-    backend: BackendConfig = field(default_factory=BackendConfig,
-                                   metadata={"help": "The keyframe backend (tracking.backend): landmarks, local bundle adjustment."})
+    backend: BackendConfig = field(default_factory=BackendConfig, metadata={
+        "help": "The keyframe backend (tracking.backend): landmarks, local bundle adjustment."})
     motion: MotionConfig = field(default_factory=MotionConfig, metadata={"help": "Learning to forget (dynamic mode)."})
     eval: EvalConfig = field(default_factory=EvalConfig, metadata={"help": "Evaluation."})
     run: RunConfig = field(default_factory=RunConfig, metadata={"help": "The run itself."})

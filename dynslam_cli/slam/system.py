@@ -371,14 +371,13 @@ class SLAM:
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
         iters = self.tracking_iters
-        lost = False
         if self.backend is not None:
             out = self._backend_track(frame, cur)
             if not out.lost:
                 return self._finish_track(cur, out.pose_c2w, float("nan"), 0, False, t0)
             # lost: dense tracking against the neural map from the constant-velocity pose (if it runs)
             self._event(cur.idx, "lost", out.reason + ("; dense tracking from constant velocity" if iters > 0 else ""))
-            init, lost = out.pose_c2w, True
+            init = out.pose_c2w
         else:
             init = self._initial_guess(cur)
         tvalid = self._without_edges(cur, cur.valid, tc.edge_margin)
