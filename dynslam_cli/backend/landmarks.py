@@ -17,8 +17,8 @@ class LandmarkMap:
     """``pos`` (N×3 world), ``des`` (N×32), ``octave`` and ``dist`` (pyramid level and camera
     distance when created: the scale it is expected at elsewhere), ``first_kf`` (keyframe id that
     created it), ``origin`` (the instance id of the pixel it was created on, -1 = unknown:
-    forgetting an instance that turned out to move removes its landmarks), ``visible`` (frames it projected into), ``found`` (frames it was matched in as
-    an inlier), ``alive``.  Observations (one per keyframe that matched it): ``obs_kf``,
+    forgetting an instance that turned out to move removes its landmarks), ``visible`` (frames it
+    projected into), ``found`` (frames it was matched in as an inlier), ``alive``.  Observations (one per keyframe that matched it): ``obs_kf``,
     ``obs_lm``, ``obs_uv``, ``obs_depth`` (0 = no depth), ``obs_octave``."""
 
     def __init__(self):
