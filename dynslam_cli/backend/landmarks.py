@@ -18,8 +18,9 @@ class LandmarkMap:
     distance when created: the scale it is expected at elsewhere), ``first_kf`` (keyframe id that
     created it), ``origin`` (the instance id of the pixel it was created on, -1 = unknown:
     forgetting an instance that turned out to move removes its landmarks), ``visible`` (frames it
-    projected into), ``found`` (frames it was matched in as an inlier), ``alive``.  Observations (one per keyframe that matched it): ``obs_kf``,
-    ``obs_lm``, ``obs_uv``, ``obs_depth`` (0 = no depth), ``obs_octave``."""
+    projected into), ``found`` (frames it was matched in as an inlier), ``alive``.  Observations
+    (one per keyframe that matched it): ``obs_kf``, ``obs_lm``, ``obs_uv``, ``obs_depth`` (0 = no
+    depth), ``obs_octave``."""
 
     def __init__(self):
         self.pos = np.zeros((0, 3))
