@@ -134,7 +134,8 @@ def test_config_rules(bad):
 
 def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
     """With defer, the keyframe waits for commit(): no landmark on pixels the final mask drops, and
-    each landmark carries the instance id under it, so forget() removes an instance's landmarks."""
+    each landmark carries the instance id under it, so forget() leaves out an instance's landmarks
+    while it is called dynamic and takes them back when it is called static again."""
     be = Backend(INTR, CFG)
     rgb, d = FRAMES[0]
     out = be.track(0, rgb, d, None, defer=True)
@@ -150,13 +151,14 @@ def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
     right = be.lm.origin == 7
     assert right.any() and (be.lm.origin[~right] == 0).all()
     assert be.commit(static, ids) == (False, 0.0, None)  # nothing pending any more
-    n = be.lm.n_alive
+    everything = be.lm.seen_by([0])
     assert be.forget(5, [7]) == 0  # frame 5 is no keyframe
-    gone = be.forget(0, [7])
-    assert gone == int(right.sum()) and be.lm.n_alive == n - gone and not be.lm.alive[right].any()
-    # the next frames still track on what is left
-    outs = [be.track(i, *FRAMES[i], None) for i in range(1, 4)]
+    assert be.forget(0, [7]) == int(right.sum())
+    assert set(be.lm.seen_by([0])) == set(everything) - set(np.flatnonzero(right))
+    outs = [be.track(i, *FRAMES[i], None) for i in range(1, 4)]  # the rest still tracks
     assert not any(o.lost for o in outs)
+    assert be.forget(0, []) == 0  # called static again: back in the local map
+    assert set(np.flatnonzero(right)) <= set(be.lm.seen_by([0]))
 
 
 def test_correct_last_moves_the_motion_model():

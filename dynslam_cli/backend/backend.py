@@ -9,7 +9,8 @@ adjustment of the newest keyframes' window (gtsam).
 With ``track(..., defer=True)`` the keyframe is inserted by :meth:`Backend.commit`, which takes the
 frame's final static mask (the motion check after tracking may have found more movers) and instance
 ids: no landmark is made on a pixel known to move by then, and each landmark remembers the instance
-it was made on, so :meth:`Backend.forget` removes the landmarks of an instance found to move later."""
+it was made on, so :meth:`Backend.forget` leaves out the landmarks of an instance found to move later
+(and takes them back if it is called static again)."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ class Backend:
     def __init__(self, intrinsics, cfg: Optional[BackendConfig] = None, first_pose: Optional[np.ndarray] = None):
         fx, fy, cx, cy, w, h = intrinsics
         self.cfg = cfg or BackendConfig()
-        self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.baseline)
+        self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.BASELINE)
         self.detector = Detector(self.cfg.features, int(w), int(h))
         self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
         self.lm = LandmarkMap()
@@ -93,12 +94,12 @@ class Backend:
         guess = self._predict()
         ids = self.lm.seen_by(self._local_keyframes(2 * self.cfg.window))
         tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
-                         lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.search_px,
+                         lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.SEARCH_PX,
                          self.cfg.huber_px, self.cfg.min_matches, seed=index)
         if tr.lost:
             self.lost_run += 1
             self._advance(guess)
-            if self.lost_run >= self.cfg.keyframe_max_gap and n_depth >= 2 * self.cfg.min_matches:
+            if self.lost_run >= self.cfg.KEYFRAME_MAX_GAP and n_depth >= 2 * self.cfg.min_matches:
                 # lost for long: start a fresh local map at the predicted pose rather than never recover
                 t1 = time.perf_counter()
                 self._insert_keyframe(index, guess, kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
@@ -117,7 +118,7 @@ class Backend:
         untracked[tr.kp] = False
         new_kf, why = need_keyframe(len(tr.lm), ref_tracked, index - self.last_kf_index,
                                     int((untracked & (kp.depth > 0)).sum()), n_kf, self.cfg.keyframe_ratio,
-                                    self.cfg.keyframe_max_gap)
+                                    self.cfg.KEYFRAME_MAX_GAP)
         self._advance(tr.pose)
         reason = tr.reason + (f"; keyframe ({why})" if new_kf else "")
         out = self._out(tr.pose, len(tr.lm), False, new_kf, reason, t0)
@@ -169,12 +170,13 @@ class Backend:
         self.last_pose = pose.copy()
 
     def forget(self, frame_index: int, instance_ids) -> int:
-        """Remove the landmarks that the keyframe of frame ``frame_index`` made on instances
-        ``instance_ids`` (found to move since); returns how many (0 when that frame is no keyframe)."""
+        """Leave out of tracking and bundle adjustment the landmarks that the keyframe of frame
+        ``frame_index`` made on instances ``instance_ids`` (the ones called dynamic now; its other
+        landmarks come back); returns how many are left out (0 when that frame is no keyframe)."""
         kf = np.flatnonzero(self.kf_frame == int(frame_index))
-        if len(kf) == 0 or len(instance_ids) == 0:
+        if len(kf) == 0:
             return 0
-        return self.lm.forget(int(kf[0]), instance_ids)
+        return self.lm.set_moving(int(kf[0]), instance_ids)
 
     def trajectory(self) -> np.ndarray:
         """Every tracked frame's camera-to-world pose (F×4×4), each composed with its reference

@@ -9,7 +9,7 @@ import numpy as np
 
 from dynslam_cli.backend.features import SCALE, Keypoints
 
-_LM = ("pos", "des", "octave", "dist", "first_kf", "origin", "visible", "found", "alive")
+_LM = ("pos", "des", "octave", "dist", "first_kf", "origin", "moving", "visible", "found", "alive")
 _OBS = ("obs_kf", "obs_lm", "obs_uv", "obs_depth", "obs_octave")
 
 
@@ -17,7 +17,8 @@ class LandmarkMap:
     """``pos`` (N×3 world), ``des`` (N×32), ``octave`` and ``dist`` (pyramid level and camera
     distance when created: the scale it is expected at elsewhere), ``first_kf`` (keyframe id that
     created it), ``origin`` (the instance id of the pixel it was created on, -1 = unknown:
-    forgetting an instance that turned out to move removes its landmarks), ``visible`` (frames it
+    an instance found to move has its landmarks set ``moving``, left out of tracking and bundle
+    adjustment until it is called static again), ``visible`` (frames it
     projected into), ``found`` (frames it was matched in as an inlier), ``alive``.  Observations
     (one per keyframe that matched it): ``obs_kf``, ``obs_lm``, ``obs_uv``, ``obs_depth`` (0 = no
     depth), ``obs_octave``."""
@@ -29,6 +30,7 @@ class LandmarkMap:
         self.dist = np.zeros(0)
         self.first_kf = np.zeros(0, np.int64)
         self.origin = np.zeros(0, np.int64)
+        self.moving = np.zeros(0, bool)
         self.visible = np.zeros(0, np.int64)
         self.found = np.zeros(0, np.int64)
         self.alive = np.zeros(0, bool)
@@ -60,6 +62,7 @@ class LandmarkMap:
         self.first_kf = np.concatenate([self.first_kf, np.full(n, kf, np.int64)])
         org = np.full(n, -1, np.int64) if origin is None else np.asarray(origin, np.int64).reshape(n)
         self.origin = np.concatenate([self.origin, org])
+        self.moving = np.concatenate([self.moving, np.zeros(n, bool)])
         self.visible = np.concatenate([self.visible, np.ones(n, np.int64)])
         self.found = np.concatenate([self.found, np.ones(n, np.int64)])
         self.alive = np.concatenate([self.alive, np.ones(n, bool)])
@@ -81,7 +84,7 @@ class LandmarkMap:
     def seen_by(self, kfs) -> np.ndarray:
         """Ids of the alive landmarks observed by any keyframe in ``kfs`` (sorted)."""
         ids = np.unique(self.obs_lm[np.isin(self.obs_kf, np.asarray(list(kfs), np.int64))])
-        return ids[self.alive[ids]]
+        return ids[self.alive[ids] & ~self.moving[ids]]
 
     def covisible(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keyframes observing any of landmarks ``ids`` and how many of them each observes, most first
@@ -119,14 +122,13 @@ class LandmarkMap:
         self.kill(bad)
         return int(bad.sum())
 
-    def forget(self, kf: int, instance_ids) -> int:
-        """Kill the landmarks keyframe ``kf`` created on instances ``instance_ids`` (they turned out
-        to move); returns how many were alive."""
-        bad = self.alive & (self.first_kf == kf) & (self.origin >= 0)
-        bad &= np.isin(self.origin, np.asarray(instance_ids, np.int64))
-        if bad.any():
-            self.kill(bad)
-        return int(bad.sum())
+    def set_moving(self, kf: int, instance_ids) -> int:
+        """The landmarks keyframe ``kf`` created on instances ``instance_ids`` are moving (left out
+        of tracking and bundle adjustment); its others are not (an instance called dynamic by
+        mistake gets its landmarks back).  Returns how many alive landmarks of ``kf`` are moving."""
+        own = (self.first_kf == kf) & (self.origin >= 0)
+        self.moving[own] = np.isin(self.origin[own], np.asarray(instance_ids, np.int64))
+        return int((self.moving & own & self.alive).sum())
 
     def kill(self, bad: np.ndarray) -> None:
         self.alive &= ~bad
