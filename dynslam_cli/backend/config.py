@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from dynslam_cli.config.fields import opt
 
@@ -13,9 +14,6 @@ class BackendConfig:
                         min=50)
     window: int = opt(10, "Keyframes optimised by local bundle adjustment: the newest keyframe and its most "
                       "covisible ones (the local map frames are tracked against is twice as many).", min=2)
-    search_px: float = opt(15.0, "Radius (px at 640 px width, times the keypoint's scale) in which a local-map "
-                           "landmark projected with the constant-velocity pose looks for its keypoint; the second "
-                           "pass, from the optimised pose, uses a quarter of it.", above=0)
     huber_px: float = opt(2.8, "Robust (Huber) kernel width in pixels at the finest ORB scale, for the pose and the "
                           "bundle adjustment; observations beyond it on the chi-square scale (2.8 px ~ the 95 % "
                           "gate 7.815 of a 3-D RGB-D residual) are outliers.", above=0)
@@ -23,6 +21,14 @@ class BackendConfig:
                            "search and PnP relocalisation: the frame is 'lost' (constant-velocity pose).", min=6)
     keyframe_ratio: float = opt(0.75, "A new keyframe when the frame tracks fewer than this fraction of the "
                                 "reference keyframe's landmarks (ORB-SLAM2 RGB-D: 0.75).", above=0, max=1)
-    keyframe_max_gap: int = opt(30, "A new keyframe at the latest this many frames after the last one.", min=1)
-    baseline: float = opt(0.08, "Virtual stereo baseline (m) of the RGB-D residual u_R = u - fx*b/depth: depth "
-                          "noise grows as depth^2/(fx*b) pixels (ORB-SLAM2's TUM bf = 40 at fx 517).", above=0)
+
+    # Constants (not keys).  Radius (px at 640 px width, times the keypoint's scale) in which a local-map landmark
+    # projected with the constant-velocity pose looks for its keypoint; the second pass, from the optimised pose,
+    # uses a quarter of it.
+    SEARCH_PX: ClassVar[float] = 15.0
+    # A new keyframe at the latest this many frames after the last one.
+    KEYFRAME_MAX_GAP: ClassVar[int] = 30
+    # Virtual stereo baseline (m) of the RGB-D residual u_R = u - fx*b/depth: depth noise grows as depth^2/(fx*b)
+    # pixels (ORB-SLAM2's TUM bf = 40 at fx 517).  Bench (bench_backend.py): 0.08 -> synth static 0.84 cm, walker
+    # 0.86, Bonn yolo full depth 1.73; 0.3 -> 0.62 / 0.82 / 2.02.
+    BASELINE: ClassVar[float] = 0.08
