@@ -1,4 +1,4 @@
-"""Build hook: ship the repository's ``configs/*.yaml`` inside the package.
+"""Build hook: ship the repository's ``configs/*.yaml`` and ``configs/presets/*.yaml`` inside the package.
 
 ``configs/`` at the repository root stays the source of truth; a built wheel (``pip install .``,
 ``pip wheel .``) carries a copy as ``dynslam_cli/_configs/``, which
@@ -16,17 +16,18 @@ PACKAGE_DIR = "_configs"
 
 
 class BuildPyWithConfigs(build_py):
-    """``build_py`` that also copies ``configs/*.yaml`` into ``<build_lib>/dynslam_cli/_configs``."""
+    """``build_py`` that also copies ``configs/*.yaml`` and ``configs/presets/*.yaml`` into
+    ``<build_lib>/dynslam_cli/_configs`` (the presets into its ``presets/``)."""
 
     def _config_files(self):
-        files = sorted(CONFIGS.glob("*.yaml"))
+        files = sorted(CONFIGS.glob("*.yaml")) + sorted(CONFIGS.glob("presets/*.yaml"))
         if not (CONFIGS / "base.yaml").is_file():
             raise SystemExit(f"cannot build dynslam_cli: {CONFIGS / 'base.yaml'} not found")
         return files
 
     def _targets(self):
         dst = Path(self.build_lib) / "dynslam_cli" / PACKAGE_DIR
-        return [(src, dst / src.name) for src in self._config_files()]
+        return [(src, dst / src.relative_to(CONFIGS)) for src in self._config_files()]
 
     def run(self):
         super().run()

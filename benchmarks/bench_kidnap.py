@@ -210,7 +210,7 @@ def main() -> None:
     from dynslam_cli.eval.ate import evaluate_run_ate
 
     spec = "synth/kidnap"
-    base = [f"data.root={a.data_root}", f"run.threads={a.threads}", f"motion.threads={a.threads}",
+    base = [f"data.root={a.data_root}", f"run.threads={a.threads}",
             f"synth.width={w}", f"synth.height={h}", f"synth.frames={a.frames}", f"synth.seed={a.seed}",
             "run.mesh=true", "run.save_masks=true"] + a.set
     case = Path(a.out) / (f"synth-kidnap-{w}x{h}-{a.frames}f" + ("" if a.seed == 0 else f"-s{a.seed}"))

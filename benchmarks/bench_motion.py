@@ -59,14 +59,14 @@ def main() -> None:
     os.environ.setdefault("DYNSLAM_CACHE", str(Path(tempfile.gettempdir()) / "dynslam-bench-cache"))
 
     from dynslam_cli.config import Config
-    from dynslam_cli.motion.encode_base import make_encoder
-    from dynslam_cli.motion.segment_base import make_segmenter
+    from dynslam_cli.motion.encoders import make_encoder
+    from dynslam_cli.motion.segmenters import make_segmenter
 
     rgb, depth, what = load_frame()
     cfg = Config()
-    cfg.motion.threads = args.threads
+    cfg.run.threads = args.threads
     rows = []
-    geo = make_segmenter(cfg.motion)
+    geo = make_segmenter(cfg.motion, threads=cfg.run.threads)
     seg = geo.segment(rgb, depth)
     rows.append(("segmenter", "geometric", what, seg.count, timeit(lambda: geo.segment(rgb, depth), args.repeats)))
     yolo = SHARED / "models" / "yolov8n-seg_deq_fp32.onnx"
@@ -74,7 +74,7 @@ def main() -> None:
         bus = cv2.resize(cv2.cvtColor(cv2.imread(str(SHARED / "images" / "bus.jpg")), cv2.COLOR_BGR2RGB), (640, 480))
         for name in ("yolov8n-seg_deq_fp32.onnx", "yolov8n-seg_int8.onnx"):
             cfg.motion.segmenter, cfg.motion.segmenter_model = "yolo-seg", str(SHARED / "models" / name)
-            ys = make_segmenter(cfg.motion)
+            ys = make_segmenter(cfg.motion, threads=cfg.run.threads)
             k = ys.segment(bus).count
             rows.append(("segmenter", f"yolo-seg ({name})", "bus.jpg 640×480", k,
                          timeit(lambda ys=ys: ys.segment(bus), args.repeats)))
@@ -85,7 +85,7 @@ def main() -> None:
     ids = seg.ids
     for enc_name in ("effnet-lite0", "color-hist"):
         cfg.motion.encoder = enc_name
-        enc = make_encoder(cfg.motion)
+        enc = make_encoder(cfg.motion, threads=cfg.run.threads)
         label = enc_name + (f" [{enc.backend}]" if hasattr(enc, "backend") else "")
         rows.append(("encoder", label, what, seg.count, timeit(lambda enc=enc: enc.encode(rgb, ids), args.repeats)))
     from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
@@ -100,7 +100,7 @@ def main() -> None:
     from dynslam_cli.motion.module import MotionModule
 
     cfg = Config()
-    cfg.motion.threads = args.threads
+    cfg.run.threads = args.threads
     f = 525.0
     mod = MotionModule(cfg, (f, f, 319.5, 239.5), torch.device("cpu"))
     frame = SimpleNamespace(index=0, rgb=rgb, depth=depth)

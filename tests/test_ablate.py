@@ -308,10 +308,10 @@ def test_real_runner_cell(tmp_path):
     cfg.width, cfg.height = 64, 48
     scene = tmp_path / "walker"
     render_preset("walker", scene, cfg, frames=10, progress=False)
-    tiny = ["map.n_levels=4", "map.log2_hashmap_size=12", "map.base_resolution=8", "map.voxel_size=0.1",
-            "mapping.first_iters=20", "mapping.first_rays=256", "tracking.iters=3", "tracking.n_rays=128",
+    tiny = ["map.n_levels=4", "map.log2_hashmap_size=12", "map.voxel_size=0.1",
+            "mapping.first_iters=20", "tracking.iters=3", "tracking.n_rays=128",
             "mapping.iters=3", "mapping.n_rays=256", "tracking.ignore_border=2", "run.mesh_resolution=0.1",
-            "motion.check_width=32", "run.check_warmup=1"]
+            "motion.check_width=32"]
     cells = ab.build_grid([str(scene)], ["dynamic", "static"], ["color-hist"], [], [], [], ["0"], extra=tiny)
     res = ab.ablate(cells, "real", tmp_path / "abl", frames=10)
     assert len(res.cells) == 2

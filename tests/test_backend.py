@@ -51,7 +51,8 @@ def _render(T):
 
 
 FRAMES = [_render(_camera(i)) for i in range(10)]
-CFG = BackendConfig(features=400, window=4, keyframe_max_gap=4)
+CFG = BackendConfig(features=400, window=4)
+CFG.KEYFRAME_MAX_GAP = 4  # a short sequence: the gap policy within it
 
 
 def _run(be, frames, start=0, static=None):

@@ -41,8 +41,8 @@ def test_overrides_types_and_precedence(tmp_path: Path):
     ("nosection.x=1", "unknown config key 'nosection'"),
     ("tracking.iters=abc", "must be an integer"),
     ("run.save_masks=3", "must be true/false"),
-    ("map.w_smooth=1e-8x", "must be a number"),
-    ("map.w_smooth=e-8", "must be a number"),
+    ("map.w_depth=1e-8x", "must be a number"),
+    ("map.w_depth=e-8", "must be a number"),
     ("tracking", "section.key=value"),
 ])
 def test_bad_overrides(override, fragment):
@@ -53,9 +53,9 @@ def test_bad_overrides(override, fragment):
 def test_exponent_without_a_dot_is_a_number(tmp_path: Path):
     # PyYAML (YAML 1.1) reads 1e-8 as a string; float fields accept it from --set and from files
     f = tmp_path / "c.yaml"
-    f.write_text("map:\n  w_smooth: 5E+3\n")
+    f.write_text("map:\n  w_sdf: 5E+3\n")
     cfg = load_config(config_file=f, overrides=["map.w_depth=1e-8", "map.w_rgb=2.5e1"])
-    assert cfg.map.w_smooth == 5000.0 and cfg.map.w_depth == 1e-8 and cfg.map.w_rgb == 25.0
+    assert cfg.map.w_sdf == 5000.0 and cfg.map.w_depth == 1e-8 and cfg.map.w_rgb == 25.0
     with pytest.raises(DynslamError, match="must be an integer"):
         apply_overrides(Config(), ["tracking.iters=1e3"])
 
@@ -93,12 +93,81 @@ def test_cli_config_show_and_error():
     assert "Traceback" not in r.output
 
 
-def test_yolo_person_overlay_loads_over_bonn():
-    root = Path(__file__).resolve().parents[1] / "configs"
-    cfg = load_config("bonn", "crowd", config_file=root / "yolo-person.yaml")
+def test_yolo_person_preset_loads_over_bonn():
+    cfg = load_config("bonn", "crowd", preset="yolo-person")
     assert cfg.motion.segmenter == "yolo-seg" and cfg.motion.prior_classes == ["person"]
-    # bonn.yaml beneath it, with its dynamic-mode local map and map-only bundle adjustment
-    assert cfg.tracking.feature_init and cfg.data.max_depth == 3.0 and cfg.tracking.feature_verify == 0.1
-    assert cfg.tracking.feature_refs_dynamic == 8 and cfg.mapping.lr_pose_dynamic == 0.0
-    assert cfg.tracking.feature_verify_min_static == 0.05
-    assert cfg.motion.encoder_input_size == 160
+    assert cfg.data.max_depth == 3.0  # bonn.yaml beneath it
+    # the same algorithm as the defaults otherwise
+    plain = load_config("bonn", "crowd")
+    assert (cfg.tracking, cfg.mapping, cfg.run) == (plain.tracking, plain.mapping, plain.run)
+
+
+def test_presets_load_and_differ_where_they_should():
+    from dynslam_cli.config.loader import preset_names
+
+    assert {"coslam", "paper", "yolo-person"} <= set(preset_names())
+    base = load_config("synth", "walker")
+    coslam = load_config("synth", "walker", preset="coslam")
+    paper = load_config("synth", "walker", preset="paper")
+    assert base.tracking.backend and not coslam.tracking.backend and not paper.tracking.backend
+    assert coslam.tracking.icp_init and paper.tracking.icp_init and coslam.mapping.lr_pose > 0
+    assert (coslam.run.mode, paper.run.mode, base.run.mode) == ("static", "dynamic", "dynamic")
+    assert paper.run.still_frames == 0 and paper.run.forget_radius == 0 and base.run.still_frames == 20
+    assert coslam.map == base.map and coslam.motion == base.motion
+    # a preset sits between the dataset file and --config / --set
+    f = Path(__file__).parent / "_preset_probe.yaml"
+    cfg = load_config("synth", "walker", preset="coslam", overrides=["run.mode=dynamic"])
+    assert cfg.run.mode == "dynamic" and not cfg.tracking.backend and not f.exists()
+
+
+def test_preset_by_path_and_unknown_preset(tmp_path: Path):
+    f = tmp_path / "mine.yaml"
+    f.write_text("tracking:\n  iters: 3\n")
+    assert load_config(preset=str(f)).tracking.iters == 3
+    with pytest.raises(DynslamError, match=r"unknown preset 'nope'; presets: coslam, paper, yolo-person"):
+        load_config(preset="nope")
+    with pytest.raises(DynslamError, match="preset file not found"):
+        load_config(preset=str(tmp_path / "absent.yaml"))
+
+
+def test_cli_preset_show_and_unknown_preset_error(tmp_path: Path):
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    r = CliRunner().invoke(app, ["config", "show", "--preset", "coslam", "--plain"])
+    assert r.exit_code == 0, r.output
+    shown = yaml.safe_load(r.output)
+    assert shown["tracking"]["backend"] is False and shown["run"]["mode"] == "static"
+    out = tmp_path / "run"
+    for cmd in (["config", "show"], ["run", "--seq", "synth/walker", "--out", str(out)],
+                ["ablate", "--seq", "synth/walker", "--dry-run", "--results", str(tmp_path / "abl")]):
+        r = CliRunner().invoke(app, cmd + ["--preset", "nope"])
+        assert r.exit_code == 2, (cmd, r.output)
+        assert r.output.strip().splitlines()[-1].startswith("error: unknown preset 'nope'; presets: coslam, paper")
+        assert "Traceback" not in r.output
+    assert not out.exists() and not (tmp_path / "abl").exists()
+
+
+def _leaves(d, pre=""):
+    for k, v in (d or {}).items():
+        if isinstance(v, dict) and k != "sequences":
+            yield from _leaves(v, f"{pre}{k}.")
+        else:
+            yield f"{pre}{k}"
+
+
+def test_dataset_files_hold_sensor_and_data_facts_only():
+    # the check ../shared/tools/structure.py makes: data.*, map.bounds and synth.* only
+    root = Path(__file__).resolve().parents[1] / "configs"
+    for ds in ("bonn", "tum", "synth"):
+        d = yaml.safe_load((root / f"{ds}.yaml").read_text()) or {}
+        seqs = d.pop("sequences", {}) or {}
+        keys = list(_leaves(d)) + [k for s in seqs.values() for k in _leaves(s)]
+        algo = [k for k in keys if not (k.startswith("data.") or k == "map.bounds" or k.startswith("synth."))]
+        assert keys and not algo, (ds, algo)
+
+
+def test_the_config_has_under_90_keys():
+    keys = list(_leaves(yaml.safe_load(config_to_yaml(Config(), comments=False))))
+    assert 50 < len(keys) < 90, len(keys)

@@ -38,11 +38,11 @@ def test_depth_guided_sampling_bands_and_missing_depth():
     cfg = Config().map
     d = torch.tensor([2.0, 0.0, 1.0])
     z = sample_depths(d, cfg, torch.Generator().manual_seed(0))
-    S = cfg.samples_free + cfg.samples_surface
+    S = cfg.SAMPLES_FREE + cfg.samples_surface
     assert z.shape == (3, S)
-    band = z[0, cfg.samples_free:]
+    band = z[0, cfg.SAMPLES_FREE:]
     assert torch.all((band >= 2.0 - cfg.surface_range) & (band <= 2.0 + cfg.surface_range))
-    assert torch.all(z[0, :cfg.samples_free] <= 2.0 - cfg.surface_range) and torch.all(z[0] >= cfg.near)
+    assert torch.all(z[0, :cfg.SAMPLES_FREE] <= 2.0 - cfg.surface_range) and torch.all(z[0] >= cfg.near)
     assert torch.all((z[1] >= cfg.near) & (z[1] <= cfg.far)) and float(z[1].max()) > 0.8 * cfg.far
     assert torch.all(z[:, 1:] >= z[:, :-1])
 
@@ -86,7 +86,7 @@ def test_smoothness_from_the_ray_query_matches_the_separate_grid_call():
 
     torch.manual_seed(0)
     cfg = Config().map
-    cfg.n_levels, cfg.log2_hashmap_size, cfg.smooth_grid, cfg.smooth_voxel = 4, 10, 4, 0.2
+    cfg.n_levels, cfg.log2_hashmap_size, cfg.SMOOTH_GRID, cfg.SMOOTH_VOXEL = 4, 10, 4, 0.2
     m = NeuralMap(cfg, [[-1, -1, 0], [1, 1, 3]])
     with torch.no_grad():
         m.grid.embeddings.uniform_(-0.1, 0.1)

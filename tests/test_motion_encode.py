@@ -87,13 +87,12 @@ def test_effnet_torch_and_onnx_agree_and_embed(effnet):
 
 def test_effnet_runs_at_a_smaller_input_size(shared_dir, tmp_path, monkeypatch):
     from dynslam_cli.config import Config
-    from dynslam_cli.motion.encode_base import make_encoder
+    from dynslam_cli.motion.encoders import make_encoder
 
     monkeypatch.setenv("DYNSLAM_CACHE", str(tmp_path))
     cfg = Config()
-    cfg.motion.encoder_input_size = 160
-    cfg.motion.threads = 1
-    small = make_encoder(cfg.motion)
+    assert cfg.motion.encoder_input_size == 0  # effnet-lite0's own size: 160
+    small = make_encoder(cfg.motion, threads=1)
     assert small.input_size == 160
     assert (tmp_path / "effnet-lite0-160-v1.onnx").is_file() and small.backend == "onnxruntime"
     top = small.classify(_read(shared_dir / "images" / "bus.jpg"))
@@ -204,7 +203,7 @@ def test_pool_shapes():
 
 def test_make_encoder_presets_from_config(tmp_path):
     from dynslam_cli.config import Config
-    from dynslam_cli.motion.encode_base import make_encoder
+    from dynslam_cli.motion.encoders import make_encoder
 
     cfg = Config()
     cfg.motion.encoder = "clip"

@@ -98,10 +98,11 @@ def _module(encoder="color-hist", **over):
 
     cfg = Config()
     cfg.motion.encoder = encoder
-    cfg.motion.min_instance_area = 16
     for k, v in over.items():
         setattr(cfg.motion, k, v)
-    return MotionModule(cfg, toy_intrinsics(W, H), torch.device("cpu"))
+    mod = MotionModule(cfg, toy_intrinsics(W, H), torch.device("cpu"))
+    mod.segmenter.min_instance_area = 16  # the toy frames are small
+    return mod
 
 
 def _instance_of(inst, mask):
@@ -258,4 +259,4 @@ def test_module_with_effnet_encoder(tmp_path, monkeypatch):
     f1 = _frame(1, person_x=0.2)
     inst1 = mod.observe(f1, np.eye(4))
     assert inst1.dynamic[_instance_of(inst1, f1.gt == 1) - 1]
-    assert (tmp_path / "cache" / "effnet-lite0-224-v1.onnx").is_file()
+    assert (tmp_path / "cache" / "effnet-lite0-160-v1.onnx").is_file()  # motion.encoder_input_size 0: 160

@@ -17,7 +17,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "LICENSE", "configs", "dynslam_cli")
-CONFIGS = sorted(p.name for p in (REPO / "configs").glob("*.yaml"))
+CONFIGS = sorted(str(p.relative_to(REPO / "configs")) for p in (REPO / "configs").glob("**/*.yaml"))
 
 
 def _pip(*args, cwd=None):
@@ -50,7 +50,7 @@ def installed(wheel, tmp_path_factory) -> Path:
 
 
 def test_the_wheel_ships_the_configs(wheel):
-    assert "base.yaml" in CONFIGS and "bonn.yaml" in CONFIGS
+    assert "base.yaml" in CONFIGS and "bonn.yaml" in CONFIGS and "presets/coslam.yaml" in CONFIGS
     with zipfile.ZipFile(wheel) as z:
         names = set(z.namelist())
         for name in CONFIGS:

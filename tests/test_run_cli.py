@@ -7,8 +7,8 @@ from typer.testing import CliRunner
 from dynslam_cli.cli import app
 from dynslam_cli.slam.toyscene import write_sequence
 
-TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
-        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=15", "--set", "mapping.first_rays=256",
+TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
+        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=15",
         "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
         "--set", "mapping.n_rays=256", "--set", "tracking.ignore_border=2", "--set", "run.threads=1",
         "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2"]
@@ -59,11 +59,11 @@ def test_resume_gives_the_same_trajectory(clip, tmp_path):
             "--set", "mapping.final_iters=3"] + TINY  # the final bundle adjustment runs after a resume too
     assert _run(args + ["--out", str(full)]).exit_code == 0
     assert json.loads((full / "timing.json").read_text())["final_ba_ms"] > 0
-    res = _run(args + ["--out", str(part), "--set", "run.stop_after=3"])
+    res = _run(args + ["--out", str(part), "--stop-after", "3"])
     assert res.exit_code == 0 and "--resume" in res.output
     assert json.loads((part / "run.json").read_text())["status"] == "interrupted"
     assert (part / "checkpoint.pt").is_file() and not (part / "traj_est.txt").exists()
-    res = _run(args + ["--out", str(part), "--set", "run.stop_after=3", "--resume"])
+    res = _run(args + ["--out", str(part), "--stop-after", "3", "--resume"])
     assert res.exit_code == 0, res.output
     assert json.loads((part / "run.json").read_text())["status"] == "completed"
     assert np.allclose(_traj(full / "traj_est.txt"), _traj(part / "traj_est.txt"), atol=1e-6)

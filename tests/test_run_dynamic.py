@@ -11,12 +11,18 @@ from dynslam_cli.cli import app
 from dynslam_cli.run.dynamic import DynamicLoop
 from dynslam_cli.slam.keyframes import Keyframe, subsample_depth
 
-TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12", "--set", "map.base_resolution=8",
-        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20", "--set", "mapping.first_rays=256",
+TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
+        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20",
         "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
         "--set", "mapping.n_rays=256", "--set", "tracking.ignore_border=2", "--set", "run.threads=1",
         "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2",
         "--set", "motion.encoder=color-hist", "--set", "motion.check_width=48"]
+
+
+@pytest.fixture(autouse=True)
+def early_check(monkeypatch):
+    """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
+    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
 
 
 @pytest.fixture(scope="module")
@@ -34,10 +40,11 @@ def _traj(path):
     return np.array([[float(v) for v in r] for r in rows])
 
 
-def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path):
+def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypatch):
+    monkeypatch.setattr("dynslam_cli.run.dynamic.RETRACK_FRACTION", 0.0001)
     out = tmp_path / "dyn"
     res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out),
-                                   "--save-masks", "-q", "--set", "run.retrack_fraction=0.0001"] + TINY)
+                                   "--save-masks", "-q"] + TINY)
     assert res.exit_code == 0, res.output
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "completed" and meta["mode"] == "dynamic"
@@ -80,13 +87,13 @@ def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
     r1 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(full), "-q"] + TINY)
     assert r1.exit_code == 0, r1.output
     r2 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(part), "-q",
-                                  "--set", "run.stop_after=5"] + TINY)
+                                  "--stop-after", "5"] + TINY)
     assert r2.exit_code == 0, r2.output
     assert json.loads((part / "run.json").read_text())["status"] == "interrupted"
     r3 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(part), "-q",
-                                  "--resume", "--set", "run.stop_after=5"] + TINY)
+                                  "--resume", "--stop-after", "5"] + TINY)
     assert r3.exit_code == 0, r3.output
-    # the resumed call has its own stop_after budget: 5 more frames finish the 10-frame clip
+    # the resumed call has its own --stop-after budget: 5 more frames finish the 10-frame clip
     assert json.loads((part / "run.json").read_text())["status"] == "completed"
     np.testing.assert_allclose(_traj(part / "traj_est.txt"), _traj(full / "traj_est.txt"), atol=1e-6)
     assert (part / "classifier_updates.jsonl").read_text() == (full / "classifier_updates.jsonl").read_text()
@@ -96,7 +103,6 @@ def _bare_loop(keyframes, intr):
     loop = DynamicLoop.__new__(DynamicLoop)
     loop.slam = SimpleNamespace(keyframes=keyframes, intr=intr, forget_landmarks=lambda fid, ids: 0)
     loop.mm = SimpleNamespace(m=SimpleNamespace(depth_threshold=0.3))
-    loop.occlusion_aware = True
     return loop
 
 
@@ -126,9 +132,6 @@ def test_checkable_depth_knows_what_keyframes_saw_behind_occluders():
     out, fwd = _bare_loop([kf], intr).checkable_depth(now, np.eye(4), step=1)
     assert not fwd[26, 26] and out[26, 26] == 2.0  # the wall behind the old box: never observed
     assert fwd[8, 46] and fwd[40, 5]  # free space / the wall the keyframe saw
-    loop = _bare_loop([kf], intr)
-    loop.occlusion_aware = False
-    assert loop.checkable_depth(now, np.eye(4), step=1)[1].all()
 
 
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():
@@ -208,36 +211,34 @@ def test_stationary_instances_know_what_stayed_put():
     assert not stationary_instances(now, ids, np.eye(4), intr, [hidden, kfs[0]]).any()
 
 
-def test_stationary_labels_only_with_centre_feature_or_when_asked():
+def test_stationary_window_and_tolerance_with_and_without_the_centre_feature():
     intr = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
     depth = np.full((48, 64), 1.5, np.float32)
     ids = np.ones((48, 64), np.int32)
     kfs = [SimpleNamespace(frame_id=i, pose_c2w=np.eye(4), depth_raw_small=subsample_depth(depth)) for i in (2, 4)]
 
-    def loop(centre, anyway, tol=0.0, tol_centre=0.0, frames=10, frames_centre=0):
-        return SimpleNamespace(still_frames=frames, still_frames_centre=frames_centre, still_without_centre=anyway,
-                               still_tolerance=tol, still_tolerance_centre=tol_centre,
+    def loop(centre, tol=0.0, frames=10):
+        return SimpleNamespace(still_frames=frames, still_tolerance=tol,
                                mm=SimpleNamespace(m=SimpleNamespace(centre_feature=centre, depth_threshold=0.3)),
                                slam=SimpleNamespace(n_frames=6, keyframes=kfs, intr=intr))
 
-    assert DynamicLoop.stationary(loop(False, False), depth, ids, np.eye(4)) is None
-    assert DynamicLoop.stationary(loop(True, False), depth, ids, np.eye(4)).tolist() == [True]
-    assert DynamicLoop.stationary(loop(False, True), depth, ids, np.eye(4)).tolist() == [True]
-    # run.still_tolerance: 10 cm closer than the keyframes saw is 'stayed put' within t_d (0.3 m,
-    # the default) but not within 5 cm
+    # the stayed-put test applies with and without the centre feature; run.still_frames 0 turns it off
+    assert DynamicLoop.stationary(loop(False), depth, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(True), depth, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(False, frames=0), depth, ids, np.eye(4)) is None
+    # run.still_tolerance: 10 cm closer than the keyframes saw is 'stayed put' within t_d (0 = 0.3 m)
+    # but not within 5 cm, with or without the centre feature
     closer = depth - 0.1
-    assert DynamicLoop.stationary(loop(False, True), closer, ids, np.eye(4)).tolist() == [True]
-    assert DynamicLoop.stationary(loop(False, True, 0.05), closer, ids, np.eye(4)).tolist() == [False]
-    assert DynamicLoop.stationary(loop(False, True, 0.15), closer, ids, np.eye(4)).tolist() == [True]
-    # with the centre feature run.still_tolerance_centre applies instead (0 = t_d)
-    assert DynamicLoop.stationary(loop(True, True, 0.05), closer, ids, np.eye(4)).tolist() == [True]
-    assert DynamicLoop.stationary(loop(True, True, 0.3, 0.05), closer, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(False), closer, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(False, 0.05), closer, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(True, 0.05), closer, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(False, 0.15), closer, ids, np.eye(4)).tolist() == [True]
     # the window: the keyframes of frames 2 and 4 seen from frame 5; over the last 2 frames only one
-    assert DynamicLoop.stationary(loop(False, True, frames=2), depth, ids, np.eye(4)).tolist() == [False]
-    # with the centre feature run.still_frames_centre applies instead (0 = run.still_frames)
-    assert DynamicLoop.stationary(loop(True, False, frames=2, frames_centre=10), depth, ids, np.eye(4)).tolist() == [True]
-    assert DynamicLoop.stationary(loop(True, False, frames=10, frames_centre=2), depth, ids, np.eye(4)).tolist() == [False]
-    assert DynamicLoop.stationary(loop(True, False, frames=2), depth, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(False, frames=2), depth, ids, np.eye(4)).tolist() == [False]
+    # with the centre feature the window is half as long: 4 frames see one keyframe, 3 frames too few to judge
+    assert DynamicLoop.stationary(loop(False, frames=4), depth, ids, np.eye(4)).tolist() == [True]
+    assert DynamicLoop.stationary(loop(True, frames=4), depth, ids, np.eye(4)).tolist() == [False]
+    assert DynamicLoop.stationary(loop(True, frames=3), depth, ids, np.eye(4)) is None
 
 
 def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():

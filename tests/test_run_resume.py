@@ -15,7 +15,7 @@ ARGS = ["--mode", "static", "-q", "--set", "run.mesh=false"] + TINY
 def partial(clip, tmp_path):  # noqa: F811
     """A run stopped after 3 of 6 frames: checkpoint.pt, run.json interrupted."""
     out = tmp_path / "part"
-    res = _run(["run", "--seq", str(clip), "--out", str(out), "--set", "run.stop_after=3"] + ARGS)
+    res = _run(["run", "--seq", str(clip), "--out", str(out), "--stop-after", "3"] + ARGS)
     assert res.exit_code == 0, res.output
     assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
     return out
@@ -41,7 +41,7 @@ def test_resume_with_a_changed_config_key_names_it(clip, partial):  # noqa: F811
     res = _run(["run", "--seq", str(clip), "--out", str(partial), "--resume"] + ARGS + ["--set", "tracking.iters=4"])
     one_line_error(res, "config key tracking.iters differs (old 3, new 4)", "--overwrite")
     assert snapshot(partial) == before
-    # run.stop_after only says when a call stops: it may differ; the run then completes
+    # --stop-after only says when a call stops: it may differ; the run then completes
     res = _run(["run", "--seq", str(clip), "--out", str(partial), "--resume"] + ARGS)
     assert res.exit_code == 0, res.output
     assert json.loads((partial / "run.json").read_text())["status"] == "completed"

@@ -65,11 +65,12 @@ def test_tracking_recovers_a_small_perturbation(fitted):
     assert after < 0.5 * before, (before, after)
 
 
-def test_divergence_falls_back_to_the_constant_velocity_pose(fitted):
+def test_divergence_falls_back_to_the_constant_velocity_pose(fitted, monkeypatch):
+    import dynslam_cli.slam.system as system
+
     cfg, state = fitted
-    cfg2 = tiny_config()
-    cfg2.tracking.max_jump = 1e-9
-    slam = _load(cfg2, state)
+    monkeypatch.setattr(system, "MAX_JUMP", 1e-9)
+    slam = _load(cfg, state)
     res = slam.track(F(1, se3_exp_np([0.03, 0, 0, 0, 0, 0]), INTR))
     assert res.diverged and "jump" in res.reason
     assert np.allclose(res.pose_c2w, np.eye(4)) and slam.events[-1]["frame"] == 1
@@ -78,6 +79,7 @@ def test_divergence_falls_back_to_the_constant_velocity_pose(fitted):
         torch.full((len(pts),), float("nan")), torch.zeros(len(pts), 3), None)
     res2 = slam2.track(F(1, np.eye(4), INTR))
     assert res2.diverged and "non-finite" in res2.reason and np.all(np.isfinite(res2.pose_c2w))
+    monkeypatch.undo()
 
 
 def test_sampling_respects_masks_and_keyframe_usable_flags():
@@ -147,7 +149,7 @@ def test_depth_edges_mark_both_sides_of_a_step_and_holes():
 
 
 def test_edge_margin_keeps_tracking_and_keyframe_rays_off_depth_edges():
-    cfg = tiny_config(**{"tracking.edge_margin": 2, "mapping.edge_margin": 2, "mapping.first_iters": 2})
+    cfg = tiny_config(**{"mapping.first_iters": 2})
     intr = TinyIntrinsics(48, 36, f=60.0)  # a narrow view: the box walls themselves are no edges
     slam = SLAM(cfg, intr, torch.device("cpu"))
     f = _stepped(F(0, np.eye(4), intr))
@@ -166,8 +168,11 @@ def test_edge_margin_keeps_tracking_and_keyframe_rays_off_depth_edges():
 
 @pytest.mark.parametrize("iters,accum,steps", [(20, 5, 4), (7, 5, 2), (6, 1, 6)])
 def test_bundle_adjustment_steps_poses_once_per_accumulation(fitted, monkeypatch, iters, accum, steps):
+    import dynslam_cli.slam.system as system
+
     cfg, state = fitted
-    cfg2 = tiny_config(**{"mapping.iters": iters, "mapping.pose_accum_steps": accum, "mapping.every": 1})
+    monkeypatch.setattr(system, "POSE_ACCUM_STEPS", accum)
+    cfg2 = tiny_config(**{"mapping.iters": iters, "mapping.every": 1})
     slam = _load(cfg2, state)
     pose_steps = []
     orig = torch.optim.Adam.step
@@ -228,138 +233,17 @@ def test_final_bundle_adjustment_refines_keyframes_but_not_the_first(fitted):
     assert np.allclose(on.keyframes[1].pose_c2w, after[1])
 
 
-@pytest.mark.parametrize("feature_init", [True, False])
-def test_feature_init_poses_a_textured_frame_and_keeps_its_reference(feature_init):
-    from test_geometry_features import F as FOCAL
-    from test_geometry_features import H as HT
-    from test_geometry_features import W as WT
-    from test_geometry_features import _render, _texture
-
-    intr = TinyIntrinsics(WT, HT, f=FOCAL)
-    cfg = tiny_config(**{"tracking.iters": 0, "tracking.icp_init": False, "tracking.feature_init": feature_init,
-                         "tracking.feature_count": 1000, "mapping.first_iters": 2, "map.bounds": "null"})
-    tex = _texture()
-    poses = [np.eye(4), se3_exp_np([0.03, -0.01, 0.04, 0.01, -0.02, 0.0]),
-             se3_exp_np([0.05, -0.02, 0.07, 0.015, -0.03, 0.005])]
-
-    class TF:
-        def __init__(self, i):
-            self.index, self.timestamp, self.pose_c2w = i, float(i), poses[0] if i == 0 else None
-            self.rgb, self.depth = _render(poses[i], tex)
-
-    slam = SLAM(cfg, intr, torch.device("cpu"))
-    slam.process(TF(0))
-    r1 = slam.process(TF(1))
-    if not feature_init:  # constant velocity from one pose: the identity
-        assert slam.last_pnp is None and np.allclose(r1.pose_c2w, np.eye(4))
-        return
-    assert slam.last_pnp.ok and slam.last_pnp.inliers > 100
-    assert np.linalg.norm(r1.pose_c2w[:3, 3] - poses[1][:3, 3]) < 0.015
-    assert [f for f, _ in slam._feat_refs] == [0]  # many inliers: frame 0 stays the only reference
-    assert slam.last_pnp.ref_inliers == (slam.last_pnp.inliers,)
-    state = slam.state_dict()
-    r2 = slam.process(TF(2))
-    assert np.linalg.norm(r2.pose_c2w[:3, 3] - poses[2][:3, 3]) < 0.015
-    back = SLAM(cfg, intr, torch.device("cpu"))
-    back.load_state_dict(state)
-    assert [f for f, _ in back._feat_refs] == [0]
-    assert np.array_equal(back._feat_refs[0][1].des, state["feat_refs"][0]["des"])
-    assert np.allclose(back.process(TF(2)).pose_c2w, r2.pose_c2w)
-    # a feature step farther than tracking.max_jump from constant velocity is not used, and logged
-    cfg.tracking.max_jump = 0.01
-    tight = SLAM(cfg, intr, torch.device("cpu"))
-    tight.process(TF(0))
-    assert np.allclose(tight.process(TF(1)).pose_c2w, np.eye(4))
-    assert [e["kind"] for e in tight.events] == ["guess_rejected"] and tight.events[0]["frame"] == 1
-    # tracking.feature_min_inlier_ratio: a guess from far fewer inliers than the previous frame's is not used
-    from dynslam_cli.geometry.features import PnPResult
-
-    class Odometry:  # PnP 'finds' the true pose, from 400 inliers on frame 1 and from 100 on frame 2
-        def __init__(self, real):
-            self.calls, self.detect = 0, real.detect
-
-        def estimate_multi(self, refs, feats):
-            self.calls += 1
-            return PnPResult(poses[self.calls], 500, 400 if self.calls == 1 else 100, True, (1,))
-
-    cfg.tracking.max_jump = 0.3
-    for ratio, kinds in ((0.0, []), (0.5, ["guess_rejected"])):
-        cfg.tracking.feature_min_inlier_ratio = ratio
-        s = SLAM(cfg, intr, torch.device("cpu"))
-        s.process(TF(0))
-        s._odometry = Odometry(s._feature_odometry())
-        assert np.allclose(s.process(TF(1)).pose_c2w, poses[1])
-        r = s.process(TF(2))
-        assert np.allclose(r.pose_c2w, poses[2]) == (ratio == 0.0)  # else constant velocity from frame 1
-        assert [e["kind"] for e in s.events] == kinds
-        assert s.state_dict()["pnp_inliers"] == {1: 400, 2: 100}
-
-
-def test_iters_dynamic_replaces_the_tracking_iterations_in_dynamic_mode(fitted):
+@pytest.mark.parametrize("lr,backend", [(0.001, False), (0.0, False), (0.001, True)])
+def test_bundle_adjustment_moves_poses_only_without_the_backend_and_with_lr_pose(fitted, monkeypatch, lr, backend):
     cfg, state = fitted
-    true = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])
-    for mode, it_dyn, want in [("static", 0, 10), ("dynamic", 0, 0), ("dynamic", 3, 3), ("dynamic", -1, 10)]:
-        c = tiny_config(**{"run.mode": mode, "tracking.iters_dynamic": it_dyn})
-        slam = _load(c, state)
-        assert slam.tracking_iters == want
-        assert slam.track(F(1, true, INTR)).iters == want
-
-
-@pytest.mark.parametrize("mode,refs_dyn,lr_dyn,refs,lr", [("static", 8, 0.0, 1, 0.001), ("dynamic", 8, 0.0, 8, 0.0),
-                                                          ("dynamic", -1, -1.0, 1, 0.001)])
-def test_feature_refs_and_pose_learning_rate_have_dynamic_mode_values(fitted, monkeypatch, mode, refs_dyn, lr_dyn,
-                                                                      refs, lr):
-    cfg, state = fitted
-    c = tiny_config(**{"run.mode": mode, "tracking.feature_refs_dynamic": refs_dyn,
-                       "mapping.lr_pose_dynamic": lr_dyn, "mapping.lr_pose": 0.001})
-    slam = _load(c, state)
-    assert (slam.feature_refs, slam.lr_pose) == (refs, lr)
+    slam = _load(tiny_config(**{"mapping.lr_pose": lr}), state)
     seen = []
     real_adam = torch.optim.Adam
     monkeypatch.setattr(torch.optim, "Adam", lambda params, lr, **kw: seen.append(lr) or real_adam(params, lr=lr, **kw))
     slam.track(F(1, se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0]), INTR))
     slam.map(F(1, se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0]), INTR))  # not due: nothing optimised
+    if backend:
+        slam.backend = object()  # poses from a backend: bundle adjustment trains the map only
     slam._optimize(slam._cur, 2, 64, first=False)
-    assert (lr in seen) == (lr > 0)  # the pose optimiser runs with lr_pose, or not at all
+    assert (lr in seen) == (lr > 0 and not backend)  # the pose optimiser runs with lr_pose, or not at all
 
-
-def test_map_residual_is_lowest_at_the_true_pose_and_verification_rejects_a_wrong_feature_step():
-    from dynslam_cli.geometry.features import PnPResult
-
-    torch.manual_seed(0)
-    cfg = tiny_config(**{"tracking.iters": 0, "tracking.icp_init": False, "tracking.feature_init": True})
-    first = SLAM(cfg, INTR, torch.device("cpu"))
-    first.process(F(0, np.eye(4), INTR))
-    state = first.state_dict()
-    true = se3_exp_np([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])
-    probe = _load(cfg, state)
-    cur = probe._prepare(F(1, true, INTR), None)
-    at_true = probe.map_residual(cur, true)
-    assert at_true < 0.02 and at_true == probe.map_residual(cur, true)  # same rays every call
-    # a feature step 16 cm from constant velocity, diagonal: a step along one axis of the box moves few walls' depth
-    far = se3_exp_np([0.1, 0.08, 0.1, 0.0, 0.0, 0.0])
-    assert probe.map_residual(cur, far) > 5 * at_true
-
-    class Odometry:
-        def __init__(self, real, pose):
-            self.detect, self.pose = real.detect, pose
-
-        def estimate_multi(self, refs, feats):
-            return PnPResult(self.pose, 500, 400, True, (400,))
-
-    for verify, frame_pose, kept in ((0.0, true, True), (0.1, true, False), (0.1, far, True)):
-        cfg.tracking.feature_verify = verify
-        s = _load(cfg, state)
-        s._odometry = Odometry(s._feature_odometry(), far)
-        r = s.track(F(1, frame_pose, INTR))
-        # kept: PnP's pose; rejected: constant velocity from one pose, the identity
-        assert np.allclose(r.pose_c2w, far if kept else np.eye(4))
-        assert [e["kind"] for e in s.events] == ([] if kept else ["guess_rejected"])
-    # tracking.feature_verify_min_static: too few static pixels to judge a far step, it is refused
-    for min_static, kept in ((0.01, True), (1.01, False)):
-        cfg.tracking.feature_verify, cfg.tracking.feature_verify_min_static = 0.1, min_static
-        s = _load(cfg, state)
-        s._odometry = Odometry(s._feature_odometry(), far)
-        r = s.track(F(1, far, INTR))
-        assert np.allclose(r.pose_c2w, far if kept else np.eye(4))
-        assert [e["detail"].split(",")[0].split()[-1] for e in s.events] == ([] if kept else ["static"])

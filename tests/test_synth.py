@@ -350,7 +350,7 @@ def test_out_dir_replaced_and_protected(tmp_path, monkeypatch):
     assert len(list((out / "rgb").iterdir())) == 3
 
 
-@pytest.mark.parametrize("bad", [dict(width=4), dict(fps=0.0), dict(depth_holes=1.5), dict(rgb_noise=-1.0)])
+@pytest.mark.parametrize("bad", [dict(width=4), dict(depth_holes=1.5), dict(rgb_noise=-1.0)])
 def test_bad_config_is_a_user_error(tmp_path, bad):
     with pytest.raises(DynslamError):
         render_preset("static", tmp_path / "x", cfg(**bad), frames=2, progress=False)

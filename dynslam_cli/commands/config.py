@@ -17,15 +17,17 @@ def register(app: typer.Typer) -> None:
 
     @group.command("show")
     def show(
-        seq: Optional[str] = typer.Option(None, "--seq", help="Resolve for this sequence (its dataset file and per-sequence entries)."),
+        seq: Optional[str] = typer.Option(None, "--seq", help="Resolve for this sequence (its dataset file and "
+                                          "per-sequence entries)."),
         config: Optional[Path] = c.ConfigOpt,
+        preset: Optional[str] = c.PresetOpt,
         sets: Optional[List[str]] = c.SetOpt,
         plain: bool = typer.Option(False, "--plain", help="No help comments."),
     ) -> None:
         """Print the resolved configuration as YAML, each key with its help."""
         from dynslam_cli.config import config_to_yaml
 
-        cfg = c.resolve_config(seq, config, sets)
+        cfg = c.resolve_config(seq, config, sets, preset=preset)
         typer.echo(config_to_yaml(cfg, comments=not plain), nl=False)
 
     app.add_typer(group, name="config")

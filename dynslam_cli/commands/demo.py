@@ -24,11 +24,15 @@ def register(app: typer.Typer) -> None:
         data_root: Optional[Path] = c.DataRootOpt,
         device: Optional[str] = typer.Option(None, "--device", help="auto, cpu or cuda."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+        config_preset: Optional[str] = typer.Option(None, "--config-preset", help="A configuration preset (as "
+                                                    "`dynslam run --preset`: coslam, paper, yolo-person or a file); "
+                                                    "--preset here names the synthetic scene."),
     ) -> None:
         """Render a small synthetic scene (first time only), run SLAM on it in dynamic mode and report
         ATE, motion-mask IoU, mesh accuracy and speed (also written to report.md in the run folder)."""
         from dynslam_cli.run.demo import format_report, run_demo
 
         res = run_demo(preset, out=out, data_root=data_root, sets=list(sets or []), threads=threads,
-                       device=device, seed=seed, overwrite=overwrite, progress=not quiet)
+                       device=device, seed=seed, overwrite=overwrite, progress=not quiet,
+                       config_preset=config_preset)
         typer.echo(format_report(res), nl=False)

@@ -24,6 +24,7 @@ def register(app: typer.Typer) -> None:
         name: str = typer.Option("default", "--name", help="Ablation name: results go to <results>/<name>/<cell-id>/."),
         frames: Optional[int] = c.FramesOpt,
         config: Optional[Path] = c.ConfigOpt,
+        preset: Optional[str] = c.PresetOpt,
         sets: Optional[List[str]] = c.SetOpt,
         data_root: Optional[Path] = c.DataRootOpt,
         results: Path = typer.Option(Path("results/ablations"), "--results", help="Folder of ablations."),
@@ -47,7 +48,8 @@ def register(app: typer.Typer) -> None:
         cells = ab.build_grid(ab.split_list(seq), ab.split_list(mode), ab.split_list(encoder),
                               ab.split_list(segmenter), ab.split_list(replay), ab.split_list(prior),
                               ab.split_list(seeds), str(prior_file) if prior_file else None, list(sets or []))
-        cells = ab.key_cells(cells, str(config) if config else None, str(data_root) if data_root else None, frames)
+        cells = ab.key_cells(cells, str(config) if config else None, str(data_root) if data_root else None, frames,
+                             preset)
         if dry_run:
             for cell in cells:
                 done = ab.cell_done(results / name / cell.id, cell.key)
@@ -62,7 +64,7 @@ def register(app: typer.Typer) -> None:
         res = ab.ablate(cells, name, results, executor=executor, jobs=jobs, address=address,
                         config_file=str(config) if config else None, data_root=str(data_root) if data_root else None,
                         frames=frames, cpus_per_cell=cpus_per_cell, gpus_per_cell=gpus_per_cell,
-                        num_cpus=num_cpus, on_done=progress, threads=threads)
+                        num_cpus=num_cpus, on_done=progress, threads=threads, preset=preset)
         typer.echo(res.summary_md, nl=False)
         typer.echo(f"{len(res.cells)} cells, {res.failed} failed; summary in {res.root}/summary.md")
         if res.failed:

@@ -55,6 +55,7 @@ def register(app: typer.Typer) -> None:
         start: Optional[int] = c.StartOpt,
         stride: Optional[int] = c.StrideOpt,
         config: Optional[Path] = c.ConfigOpt,
+        preset: Optional[str] = c.PresetOpt,
         sets: Optional[List[str]] = c.SetOpt,
         device: Optional[str] = typer.Option(None, "--device", help="auto, cpu or cuda (default run.device)."),
         seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (default run.seed)."),
@@ -66,6 +67,8 @@ def register(app: typer.Typer) -> None:
         save_masks: bool = typer.Option(False, "--save-masks", help="Write per-frame motion masks (dynamic mode)."),
         data_root: Optional[Path] = c.DataRootOpt,
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or phase lines."),
+        stop_after: int = typer.Option(0, "--stop-after", hidden=True, min=0,
+                                       help="Stop (interrupted, with a checkpoint) after N frames: for tests of --resume."),
     ) -> None:
         """Run SLAM on one sequence and write the run folder (trajectory, mesh, timing, run.json)."""
         from dynslam_cli.errors import DynslamError
@@ -83,13 +86,14 @@ def register(app: typer.Typer) -> None:
             extra.append("run.save_masks=true")
         if threads is not None:
             extra.append(f"run.threads={threads}")
-        cfg = c.resolve_config(seq, config, list(sets or []) + extra, data_root, frames, start, stride)
+        cfg = c.resolve_config(seq, config, list(sets or []) + extra, data_root, frames, start, stride, preset=preset)
         cfg.run.mode = _mode(mode, cfg)
 
         from dynslam_cli.run.runner import run_sequence
 
         with _sigterm_as_interrupt():
-            res = run_sequence(seq, cfg, out_dir=out, resume=resume, overwrite=overwrite, progress=not quiet)
+            res = run_sequence(seq, cfg, out_dir=out, resume=resume, overwrite=overwrite, progress=not quiet,
+                               stop_after=stop_after)
         if res.status != "completed":
             typer.echo(f"run {res.status} after {res.frames} frames -> {res.out_dir} (continue with --resume)")
             return

@@ -4,10 +4,12 @@ Order of precedence (later wins):
 
 1. dataclass defaults (``schema.Config``),
 2. ``configs/base.yaml``,
-3. the dataset's file (``configs/tum.yaml``, ``bonn.yaml``, ``synth.yaml``) -- its top-level keys,
-   then the entries of its ``sequences:`` mapping whose glob pattern matches the sequence name,
-4. ``--config FILE`` (same layout as base.yaml),
-5. ``--set section.key=value`` overrides (values parsed as YAML).
+3. the dataset's file (``configs/tum.yaml``, ``bonn.yaml``, ``synth.yaml``: facts about the sensor and
+   the data only) -- its top-level keys, then the entries of its ``sequences:`` mapping whose glob
+   pattern matches the sequence name,
+4. ``--preset NAME`` (``configs/presets/NAME.yaml``, or a path): a named variant of the algorithm,
+5. ``--config FILE`` (same layout as base.yaml),
+6. ``--set section.key=value`` overrides (values parsed as YAML).
 
 Unknown keys anywhere are an error that names the key, the file and the valid keys.  Once all
 layers are merged, every value is checked against its field's rule (``config.fields.opt``) and
@@ -43,6 +45,26 @@ def configs_dir() -> Path:
         if (cand / "base.yaml").is_file():
             return cand
     raise DynslamError(f"configs folder with base.yaml not found: looked in {cands[0]} and {cands[1]}")
+
+
+def preset_names() -> list[str]:
+    """Names of the presets in ``configs/presets/``."""
+    folder = configs_dir() / "presets"
+    return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
+
+
+def preset_path(preset: str | Path) -> Path:
+    """The file of preset ``preset``: a name from ``configs/presets/`` or a path to a YAML file."""
+    text = str(preset)
+    named = configs_dir() / "presets" / f"{text}.yaml"
+    if named.is_file():
+        return named
+    path = Path(text)
+    if path.suffix in (".yaml", ".yml") or path.parent != Path("."):
+        if not path.is_file():
+            raise DynslamError(f"preset file not found: {path}")
+        return path
+    raise DynslamError(f"unknown preset '{text}'; presets: {', '.join(preset_names()) or 'none'} (or a YAML file path)")
 
 
 def _read_yaml(path: Path) -> dict:
@@ -175,8 +197,11 @@ def load_config(
     sequence: Optional[str] = None,
     config_file: Optional[str | Path] = None,
     overrides: Iterable[str] = (),
+    preset: Optional[str | Path] = None,
 ) -> Config:
-    """Resolve the configuration for a sequence of ``dataset`` (tum/bonn/synth) named ``sequence``."""
+    """Resolve the configuration for a sequence of ``dataset`` (tum/bonn/synth) named ``sequence``,
+    with the preset named ``preset`` (or its file) layered after the dataset file."""
+    ppath = preset_path(preset) if preset else None
     cfg = Config()
     cdir = configs_dir()
     layers: list[tuple[str, dict]] = []
@@ -189,8 +214,8 @@ def load_config(
         per_seq = _sequence_sections(ddata, sequence, str(dpath))
         layers.append((str(dpath), ddata))
         layers.extend((f"{dpath} (sequences)", sec or {}) for sec in per_seq)
-    if config_file is not None:
-        cpath = Path(config_file)
+    for cpath in [p for p in (ppath, config_file) if p is not None]:
+        cpath = Path(cpath)
         cdata = _read_yaml(cpath)
         per_seq = _sequence_sections(cdata, sequence, str(cpath))
         layers.append((str(cpath), cdata))

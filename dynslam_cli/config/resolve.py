@@ -2,8 +2,9 @@
 
 Library code (the ablation executors, benchmarks) and the CLI both resolve a run's config here:
 the sequence name picks the dataset file (``configs/<dataset>.yaml`` and its ``sequences:``
-entries), then ``config_file``, the ``--set`` overrides, and last the data root and the frame cut
-(``data.start``, ``data.frames``, ``data.stride``).
+entries), then the preset (``configs/presets/<name>.yaml``), ``config_file``, the ``--set``
+overrides, and last the data root and the frame cut (``data.start``, ``data.frames``,
+``data.stride``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ def cut_overrides(data_root: Optional[str | Path] = None, frames: Optional[int] 
 
 def resolve_config(seq: Optional[str], config_file: Optional[str | Path] = None,
                    sets: Optional[Iterable[str]] = None, data_root: Optional[str | Path] = None,
-                   frames: Optional[int] = None, start: Optional[int] = None, stride: Optional[int] = None):
+                   frames: Optional[int] = None, start: Optional[int] = None, stride: Optional[int] = None,
+                   preset: Optional[str | Path] = None):
     """The resolved :class:`~dynslam_cli.config.schema.Config` for sequence ``seq`` (None = no dataset).
 
     No data is read; unknown keys and bad values raise DynslamError.
@@ -36,4 +38,5 @@ def resolve_config(seq: Optional[str], config_file: Optional[str | Path] = None,
 
     sid = identify(seq) if seq else None
     overrides = list(sets or []) + cut_overrides(data_root, frames, start, stride)
-    return load_config(sid.dataset if sid else None, sid.name if sid else None, config_file or None, overrides)
+    return load_config(sid.dataset if sid else None, sid.name if sid else None, config_file or None, overrides,
+                       preset=preset or None)

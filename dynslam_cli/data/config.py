@@ -14,13 +14,9 @@ class DataConfig:
         5000.0, "Divide the uint16 depth PNG by this to get metres (TUM, Bonn); synthetic folders use their synth.json value.",
         above=0)
     max_time_diff: float = opt(0.02, "Maximum rgb/depth/ground-truth timestamp difference (s) when associating.", above=0)
-    gt_interpolate: bool = opt(
-        True, "Interpolate ground truth at rgb timestamps between samples <= 2*max_time_diff apart; "
-        "false = nearest sample within max_time_diff.")
     max_depth: float = opt(0.0, "Depth beyond this (m) is treated as invalid; 0 keeps all.", min=0)
     intrinsics: list | None = opt(None, "fx, fy, cx, cy in pixels; null = the dataset's own.")
     distortion: list | None = opt(None, "k1, k2, p1, p2[, k3] (OpenCV order); null = the dataset's own.")
-    undistort: bool = opt(True, "Undistort rgb and depth when the distortion is non-zero.")
     start: int = opt(0, "First frame index (after association).", min=0)
     frames: int = opt(0, "Number of frames to use; 0 = all.", min=0)
     stride: int = opt(1, "Use every S-th frame.", min=1)

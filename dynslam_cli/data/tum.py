@@ -15,7 +15,6 @@ Ground truth per frame, at the rgb timestamp: the pose is **interpolated** (tran
 rotation by slerp) between the two ground-truth samples around the rgb timestamp when the
 nearer of them is within ``max_time_diff`` and the two are at most ``2 · max_time_diff`` apart;
 otherwise the nearest sample within ``max_time_diff`` is used; otherwise the frame's pose is None.
-``data.gt_interpolate = false`` uses the nearest sample only.
 """
 
 from __future__ import annotations
@@ -401,8 +400,7 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
     gt_file = gt_file if gt_file.is_file() else None
     if gt_file is not None:
         gt_t, gt_T = read_trajectory(gt_file)
-        poses = poses_at([r.timestamp for r, _ in pairs_cut], gt_t, gt_T, max_diff,
-                         interpolate=bool(getattr(dc, "gt_interpolate", True)))
+        poses = poses_at([r.timestamp for r, _ in pairs_cut], gt_t, gt_T, max_diff, interpolate=True)
     else:
         poses = [None] * len(pairs_cut)
 
@@ -440,7 +438,7 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
     intr = Intrinsics(*intr_vals, width=int(width), height=int(height))
     distortion = _distortion_values(dc.distortion)
     undistorter = None
-    if dc.undistort and has_distortion(distortion):
+    if has_distortion(distortion):  # rgb and depth are undistorted whenever the distortion is non-zero
         undistorter = Undistorter(intr.K, distortion, width, height)
 
     records = [

@@ -43,7 +43,7 @@ from dynslam_cli.utils.io import write_json_atomic, write_text_atomic
 DEFAULT_RUNNER = "dynslam_cli.run.runner:run_sequence"
 MOTION_AXES = ("encoder", "segmenter", "replay", "prior")
 # config keys that change how a run is carried out, not its result: not part of a cell's key
-KEY_EXCLUDED = ("run.threads", "run.checkpoint_every", "run.keep_checkpoint", "run.results_root", "run.stop_after")
+KEY_EXCLUDED = ("run.threads", "run.checkpoint_every", "run.keep_checkpoint", "run.results_root")
 KEY_DIGITS = 10
 
 
@@ -182,14 +182,15 @@ def cell_key(seq: str, cfg) -> str:
 
 
 def key_cells(cells: list[Cell], config_file: Optional[str] = None, data_root: Optional[str] = None,
-              frames: Optional[int] = None) -> list[Cell]:
+              frames: Optional[int] = None, preset: Optional[str] = None) -> list[Cell]:
     """Resolve every cell's config once (no data is read; bad keys or values fail before any run) and
     set its key and id.  Cells that resolve to the same key are one cell."""
     from dynslam_cli.config.resolve import resolve_config
 
     out: dict[str, Cell] = {}
     for cell in cells:
-        cfg = resolve_config(cell.seq, config_file, list(cell.overrides), data_root=data_root, frames=frames)
+        cfg = resolve_config(cell.seq, config_file, list(cell.overrides), data_root=data_root, frames=frames,
+                             preset=preset)
         cell.slug = cell.slug or cell.id
         cell.key = cell_key(cell.seq, cfg)
         cell.id = f"{cell.slug}__{cell.key[:KEY_DIGITS]}"
@@ -277,7 +278,7 @@ def execute_cell(task: dict) -> dict:
             if threads:
                 sets.append(f"run.threads={threads}")
             cfg = resolve_config(cell["seq"], task.get("config_file"), sets, data_root=task.get("data_root"),
-                                 frames=task.get("frames"))
+                                 frames=task.get("frames"), preset=task.get("preset"))
             if key and cell_key(cell["seq"], cfg) != key:
                 raise DynslamError(f"cell {cell['id']}: its config resolves to another key than when the grid was "
                                    "built (a config file changed meanwhile?); rerun ablate")
@@ -391,7 +392,8 @@ def ablate(cells: list[Cell], name: str, results_root: str | Path = "results/abl
            jobs: int = 1, address: Optional[str] = None, config_file: Optional[str] = None,
            data_root: Optional[str] = None, frames: Optional[int] = None, runner=None,
            cpus_per_cell: float = 1.0, gpus_per_cell: float = 0.0, num_cpus: Optional[int] = None,
-           on_done: Optional[Callable[[dict], None]] = None, threads: Optional[int] = None) -> AblateResult:
+           on_done: Optional[Callable[[dict], None]] = None, threads: Optional[int] = None,
+           preset: Optional[str] = None) -> AblateResult:
     """Run every cell (skipping finished ones) and write summary.{md,csv,json} under ``<root>/<name>/``.
 
     ``threads``: run.threads of each cell; default the CPUs divided by ``jobs`` (local) or
@@ -405,15 +407,15 @@ def ablate(cells: list[Cell], name: str, results_root: str | Path = "results/abl
         raise DynslamError(f"--jobs must be at least 1, got {jobs}")
     if threads is not None and threads < 1:
         raise DynslamError(f"--threads must be at least 1, got {threads}")
-    cells = key_cells(cells, config_file, data_root, frames)
+    cells = key_cells(cells, config_file, data_root, frames, preset)
     root = Path(results_root) / name
     root.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(root / "grid.json", {"name": name, "config_file": config_file, "data_root": data_root,
+    write_json_atomic(root / "grid.json", {"name": name, "preset": preset, "config_file": config_file, "data_root": data_root,
                                            "frames": frames, "cells": [c.to_json() for c in cells]})
     if threads is None:
         threads = _local_threads(jobs) if executor == "local" else max(1, int(cpus_per_cell))
     tasks = [{"cell": c.to_json(), "out_dir": str((root / c.id).resolve()), "config_file": config_file,
-              "data_root": data_root, "frames": frames, "runner": runner or DEFAULT_RUNNER, "threads": threads}
+              "preset": preset, "data_root": data_root, "frames": frames, "runner": runner or DEFAULT_RUNNER, "threads": threads}
              for c in cells]
     cb = on_done or (lambda d: None)
     # finished cells are skipped here already, so a rerun of a finished grid starts no workers

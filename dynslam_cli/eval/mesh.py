@@ -5,7 +5,7 @@
 * Completion ratio: fraction of reference points closer than ``eval.completion_threshold``
   (5 cm) to the estimate.
 
-``eval.mesh_samples`` (200k) points are drawn on each surface with a fixed seed (trimesh's
+``MESH_SAMPLES`` (200k) points are drawn on each surface with a fixed seed (trimesh's
 area-weighted ``sample_surface`` for meshes; a point-cloud reference is used as it is, or
 randomly subsampled when it holds more points).  Distances are nearest neighbours in a scipy
 ``cKDTree`` between the two samples.
@@ -21,7 +21,7 @@ starts at the ground-truth pose this is the identity.
 Culling (``--cull``, default on).  Parts of the reference the camera never saw cannot be
 completed, so for *completion* the reference is first reduced to the points inside at least one
 estimated camera frustum: projected inside the image, in front of the camera and no farther
-than ``eval.cull_max_depth``; up to ``eval.cull_views`` poses evenly spread over the trajectory
+than ``CULL_MAX_DEPTH`` (5 m); up to ``CULL_VIEWS`` (200) poses evenly spread over the trajectory
 are used.  There is no occlusion test (a point behind a wall inside the frustum is kept), so
 culling is conservative.  Accuracy is always measured against the whole reference (culling must
 not make a correct estimated surface look wrong).
@@ -38,6 +38,13 @@ import numpy as np
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.eval import runs
 from dynslam_cli.utils.io import write_json_atomic
+
+# Points sampled on each mesh for accuracy/completion, with this seed (results are repeatable); camera poses (evenly
+# spread) whose frusta, this deep (m), cull the reference for completion.
+MESH_SAMPLES = 200000
+SEED = 0
+CULL_VIEWS = 200
+CULL_MAX_DEPTH = 5.0
 
 T_ROS = np.array([[-1, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
 T_M = np.array([[1.0157, 0.1828, -0.2389, 0.0113], [0.0009, -0.8431, -0.6413, -0.0098],
@@ -261,10 +268,10 @@ def evaluate_run_mesh(run_dir: str | Path, ref: Optional[str | Path] = None, cul
     width, height = 640, 480
     if cull:
         intr, width, height = runs.camera_model(run_dir, meta)
-        step = max(1, int(np.ceil(len(poses) / max(1, cfg.cull_views))))
+        step = max(1, int(np.ceil(len(poses) / CULL_VIEWS)))
         cull_poses = poses[::step]
-    res = compute_mesh_metrics(est_file, ref, ref_to_est, samples=cfg.mesh_samples,
-                               threshold=cfg.completion_threshold, seed=cfg.seed, cull_poses=cull_poses,
-                               intrinsics=intr, width=width, height=height, cull_max_depth=cfg.cull_max_depth)
+    res = compute_mesh_metrics(est_file, ref, ref_to_est, samples=MESH_SAMPLES,
+                               threshold=cfg.completion_threshold, seed=SEED, cull_poses=cull_poses,
+                               intrinsics=intr, width=width, height=height, cull_max_depth=CULL_MAX_DEPTH)
     write_json_atomic(run_dir / "mesh_metrics.json", res.to_json())
     return res

@@ -49,7 +49,7 @@ def ray_losses(out: dict, z: torch.Tensor, target_rgb: torch.Tensor, target_d: t
                cfg: MapConfig) -> LossTerms:
     has = target_d > 0
     if out["rgb"] is not None:
-        wr = torch.where(has, torch.ones_like(target_d), torch.full_like(target_d, cfg.rgb_missing))
+        wr = torch.where(has, torch.ones_like(target_d), torch.full_like(target_d, cfg.RGB_MISSING))
         rgb = ((out["rgb"] - target_rgb).square() * wr[:, None]).mean()
     else:
         rgb = torch.zeros((), device=z.device)
@@ -63,17 +63,17 @@ def ray_losses(out: dict, z: torch.Tensor, target_rgb: torch.Tensor, target_d: t
 def smoothness_points(centre_range: torch.Tensor, cfg: MapConfig, generator: torch.Generator | None = None):
     """The smoothness loss's points: a cube of ``smooth_grid``^3 points ``smooth_voxel`` apart whose
     corner is drawn uniformly in the world-space box centre_range (2, 3)."""
-    n = cfg.smooth_grid
+    n = cfg.SMOOTH_GRID
     dev = centre_range.device
     lo = centre_range[0] + torch.rand(3, device=dev, generator=generator) * (centre_range[1] - centre_range[0])
-    k = torch.arange(n, device=dev, dtype=torch.float32) * cfg.smooth_voxel
+    k = torch.arange(n, device=dev, dtype=torch.float32) * cfg.SMOOTH_VOXEL
     gx, gy, gz = torch.meshgrid(k, k, k, indexing="ij")
     return torch.stack([gx, gy, gz], -1).reshape(-1, 3) + lo
 
 
 def smoothness_tv(features: torch.Tensor, cfg: MapConfig) -> torch.Tensor:
     """Total variation of the grid features (smooth_grid^3, C) of :func:`smoothness_points`."""
-    n = cfg.smooth_grid
+    n = cfg.SMOOTH_GRID
     f = features.view(n, n, n, -1)
     tv = ((f[1:, :-1, :-1] - f[:-1, :-1, :-1]).square() + (f[:-1, 1:, :-1] - f[:-1, :-1, :-1]).square()
           + (f[:-1, :-1, 1:] - f[:-1, :-1, :-1]).square())

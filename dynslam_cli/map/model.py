@@ -51,14 +51,14 @@ class NeuralMap(torch.nn.Module):
         self.cfg = cfg
         self.truncation = float(cfg.truncation)
         extent = float((b[1] - b[0]).max())
-        finest = max(int(math.ceil(extent / cfg.voxel_size)), cfg.base_resolution)
-        self.grid = HashGrid(cfg.n_levels, cfg.n_features, cfg.log2_hashmap_size, cfg.base_resolution,
-                             finest, impl=cfg.hashgrid_impl)
-        self.blob = OneBlob(cfg.oneblob_bins, 3)
+        finest = max(int(math.ceil(extent / cfg.voxel_size)), cfg.BASE_RESOLUTION)
+        self.grid = HashGrid(cfg.n_levels, cfg.N_FEATURES, cfg.log2_hashmap_size, cfg.BASE_RESOLUTION,
+                             finest, impl=cfg.HASHGRID_IMPL)
+        self.blob = OneBlob(cfg.ONEBLOB_BINS, 3)
         h = cfg.hidden_dim
         # two linear layers each (Co-SLAM num_layers = 2); forward() writes them as split matmuls
-        self.sdf_net = _MLP([self.grid.out_dim + self.blob.out_dim, h, 1 + cfg.geo_feat_dim])
-        self.color_net = _MLP([self.blob.out_dim + cfg.geo_feat_dim, h, 3])
+        self.sdf_net = _MLP([self.grid.out_dim + self.blob.out_dim, h, 1 + cfg.GEO_FEAT_DIM])
+        self.color_net = _MLP([self.blob.out_dim + cfg.GEO_FEAT_DIM, h, 3])
         self.register_buffer("bmin", torch.tensor(b[0], dtype=torch.float32))
         self.register_buffer("bsize", torch.tensor(b[1] - b[0], dtype=torch.float32))
 

@@ -22,14 +22,14 @@ from dynslam_cli.map.config import MapConfig
 
 
 def n_samples(cfg: MapConfig) -> int:
-    return cfg.samples_free + cfg.samples_surface
+    return cfg.SAMPLES_FREE + cfg.samples_surface
 
 
 def sample_depths(depth: torch.Tensor, cfg: MapConfig, generator: torch.Generator | None = None,
                   perturb: bool = True) -> torch.Tensor:
     """Sorted sample distances (R, S) for rays with measured depth (R,) (0 = missing)."""
     r = depth.shape[0]
-    nf, ns = cfg.samples_free, cfg.samples_surface
+    nf, ns = cfg.SAMPLES_FREE, cfg.samples_surface
     s = nf + ns
     dev = depth.device
     if perturb:

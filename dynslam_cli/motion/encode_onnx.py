@@ -13,8 +13,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from dynslam_cli.errors import DynslamError
-from dynslam_cli.motion.encode_base import (CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, crop_fill, l2n,
-                                            masked_crops, normalise_batch)
+from dynslam_cli.motion.encode_base import (CLIP_MEAN, CLIP_STD, CROP_BACKGROUND, CROP_MARGIN, ENCODER_BATCH, IMAGENET_MEAN,
+                                            IMAGENET_STD, crop_fill, l2n, masked_crops, normalise_batch)
 from dynslam_cli.motion.onnx_utils import check_image_input, describe_io, ort_session, require_model
 
 
@@ -146,10 +146,10 @@ class OnnxEncoder:
                                f"{describe_io(self.session)}; expected {EXPECTED_IO}") from None
 
     @classmethod
-    def from_config(cls, mcfg) -> "OnnxEncoder":
+    def from_config(cls, mcfg, threads: int = 0) -> "OnnxEncoder":
         return cls(mcfg.encoder_model, mcfg.encoder, mcfg.encoder_input_size, mcfg.encoder_mean or None,
-                   mcfg.encoder_std or None, str(mcfg.encoder_output), mcfg.encoder_pooling, mcfg.crop_margin,
-                   mcfg.crop_background, mcfg.encoder_batch, mcfg.threads)
+                   mcfg.encoder_std or None, str(mcfg.encoder_output), mcfg.encoder_pooling, CROP_MARGIN,
+                   CROP_BACKGROUND, ENCODER_BATCH, threads)
 
     def _run(self, x: np.ndarray) -> np.ndarray:
         step = self.fixed_batch or self.batch

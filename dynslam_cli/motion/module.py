@@ -13,25 +13,26 @@ import torch
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.check import check_size, inconsistency_check
 from dynslam_cli.motion.classifier import MotionClassifier, ReplayBuffer, load_prior, update_with_replay
-from dynslam_cli.motion.encode_base import make_encoder
-from dynslam_cli.motion.segment_base import make_segmenter
+from dynslam_cli.motion.encoders import make_encoder
 from dynslam_cli.motion.segment_geometric import GeometricSegmenter
-from dynslam_cli.motion.types import FrameInstances, UpdateRecord
+from dynslam_cli.motion.segmenters import make_segmenter
+from dynslam_cli.motion.types import FrameInstances, UpdateRecord, intrinsics_tuple
+
+# The classifier g: a 2-layer MLP of this many hidden units, Adam at this learning rate, at most UPDATE_STEPS and at
+# least MIN_UPDATE_STEPS steps per update (then it stops once the contradictions are fixed); a reservoir replay
+# buffer of REPLAY_CAPACITY instances seen dynamic.
+HIDDEN = 128
+LR = 0.005
+UPDATE_STEPS = 50
+MIN_UPDATE_STEPS = 5
+REPLAY_CAPACITY = 1000
+# Instances with fewer valid pixels at check resolution are not judged.
+MIN_CHECK_PIXELS = 12
+# Backward check: current instances are not labelled moving where they show what a departed object uncovered (that
+# is the static background; the departed object's rendered segment is labelled dynamic either way).
+BACKWARD_CURRENT = False
 
 
-def intrinsics_tuple(intrinsics) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) from an object with fx/fy/cx/cy, a 3×3 K or a 4-sequence."""
-    if intrinsics is None:
-        raise DynslamError("motion module needs camera intrinsics")
-    if all(hasattr(intrinsics, a) for a in ("fx", "fy", "cx", "cy")):
-        return float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx), float(intrinsics.cy)
-    a = np.asarray(intrinsics, np.float64)
-    if a.shape == (3, 3):
-        return float(a[0, 0]), float(a[1, 1]), float(a[0, 2]), float(a[1, 2])
-    if a.size >= 4:
-        a = a.ravel()
-        return float(a[0]), float(a[1]), float(a[2]), float(a[3])
-    raise DynslamError(f"cannot read intrinsics from {intrinsics!r}")
 
 
 def dilation_radius(fraction: float, width: int) -> int:
@@ -81,14 +82,15 @@ class MotionModule:
         self.intr = intrinsics_tuple(intrinsics)
         self.device = torch.device(device) if not isinstance(device, torch.device) else device
         m = self.m
-        self.segmenter = make_segmenter(m, intrinsics)
+        run = getattr(cfg, "run", None)  # run.seed / run.threads (a bare MotionConfig: 0 / onnxruntime's default)
+        seed, threads = (int(run.seed), int(run.threads)) if run is not None else (0, 0)
+        self.segmenter = make_segmenter(m, intrinsics, threads)
         self.rendered_segmenter = GeometricSegmenter.from_config(m, intrinsics)
         self.rendered_segmenter.min_instance_area = 4
-        self.encoder = make_encoder(m)
+        self.encoder = make_encoder(m, threads)
         self.in_dim = int(self.encoder.dim) + (3 if m.centre_feature else 0)
-        self.classifier = MotionClassifier(self.in_dim, m.hidden, m.lr, m.update_steps, m.min_update_steps,
-                                           m.seed, self.device)
-        self.replay = ReplayBuffer(self.in_dim, m.replay_capacity, m.seed)
+        self.classifier = MotionClassifier(self.in_dim, HIDDEN, LR, UPDATE_STEPS, MIN_UPDATE_STEPS, seed, self.device)
+        self.replay = ReplayBuffer(self.in_dim, REPLAY_CAPACITY, seed)
         self.prior: Optional[MotionClassifier] = None
         if m.prior:
             self.prior = load_prior(m.prior, self.encoder.name, int(self.encoder.dim), self.device)
@@ -100,7 +102,7 @@ class MotionModule:
     def _features(self, emb: np.ndarray, centres: np.ndarray) -> np.ndarray:
         if not self.m.centre_feature:
             return emb.astype(np.float32)
-        c = np.nan_to_num(centres.astype(np.float32)) * self.m.centre_scale
+        c = np.nan_to_num(centres.astype(np.float32))  # metres, unscaled
         return np.concatenate([emb.astype(np.float32), c], 1)
 
     def _classify(self, feats: np.ndarray, emb: np.ndarray,
@@ -170,7 +172,7 @@ class MotionModule:
         self.rendered_segmenter.intrinsics = (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
         res = inconsistency_check(frame.depth, rendered_depth, inst.ids, m.depth_threshold, m.pixel_fraction,
                                   rendered_rgb, self.rendered_segmenter if m.bidirectional else None,
-                                  m.check_width, m.min_check_pixels, forward_valid, m.backward_current)
+                                  m.check_width, MIN_CHECK_PIXELS, forward_valid, BACKWARD_CURRENT)
         # centres at the tracked pose
         inst.centres = instance_centres(frame.depth, inst.ids, inst.count, self.intr, pose_c2w)
         feats = self._features(inst.embeddings, inst.centres)

@@ -68,7 +68,7 @@ def background_pieces(taken: np.ndarray, grid: int = 3, min_frac: float = 0.02) 
 
 
 def samples_from_images(folder: Path, yolo_model: str, encoder, mcfg, positive: Sequence[str] = ("person",),
-                        limit: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                        limit: int = 0, threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
     from dynslam_cli.motion.segment_yolo import YoloSegSegmenter
 
     folder = Path(folder)
@@ -79,9 +79,7 @@ def samples_from_images(folder: Path, yolo_model: str, encoder, mcfg, positive: 
         files = files[:limit]
     if not files:
         raise DynslamError(f"no images ({', '.join(IMAGE_EXT)}) in {folder}")
-    seg = YoloSegSegmenter(yolo_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou,
-                           imgsz=mcfg.segmenter_imgsz, prune_ratio=mcfg.prune_ratio,
-                           min_area=mcfg.min_instance_area, threads=mcfg.threads)
+    seg = YoloSegSegmenter(yolo_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou, threads=threads)
     if not seg.names:
         raise DynslamError(f"{yolo_model} carries no class names (a FastSAM export?); prior fit needs a "
                            "YOLOv8-seg model trained on classes such as COCO's person")
@@ -190,22 +188,24 @@ def fit_prior(out: str | Path, cfg, images: Optional[Path] = None, yolo: Optiona
               steps: int = 300, positive: Sequence[str] = ("person",), seed: int = 0) -> PriorFitResult:
     """Collect labelled crops, train the prior, save it to ``out`` (atomically), report accuracy."""
     from dynslam_cli.motion.classifier import save_prior
-    from dynslam_cli.motion.encode_base import make_encoder
+    from dynslam_cli.motion.encoders import make_encoder
+    from dynslam_cli.motion.module import HIDDEN
 
     t0 = time.perf_counter()
     if images is None and not synth:
         raise DynslamError("prior fit needs --images DIR (with --yolo) and/or --synth PRESET|DIR")
     mcfg = cfg.motion
-    encoder = make_encoder(mcfg)
+    threads = int(cfg.run.threads)
+    encoder = make_encoder(mcfg, threads)
     xs, ys, sources = [], [], {}
     if images is not None:
         model = yolo or mcfg.segmenter_model
-        x, y = samples_from_images(Path(images), model, encoder, mcfg, positive)
+        x, y = samples_from_images(Path(images), model, encoder, mcfg, positive, threads=threads)
         xs.append(x)
         ys.append(y)
         sources[str(images)] = {"samples": int(len(y)), "positives": int(y.sum())}
     if synth:
-        from dynslam_cli.motion.segment_base import make_segmenter
+        from dynslam_cli.motion.segmenters import make_segmenter
 
         segmenter = make_segmenter(mcfg) if mcfg.segmenter == "geometric" else None
         for spec in synth:
@@ -224,7 +224,7 @@ def fit_prior(out: str | Path, cfg, images: Optional[Path] = None, yolo: Optiona
         idx = np.nonzero(y == cls)[0]
         rng.shuffle(idx)
         test[idx[: max(1, int(round(test_fraction * len(idx))))]] = True
-    clf = fit_classifier(x[~test], y[~test], mcfg.hidden, steps, seed=seed)
+    clf = fit_classifier(x[~test], y[~test], HIDDEN, steps, seed=seed)
     pred = clf.predict(x)
     yb = y > 0.5
     acc_train = float((pred[~test] == yb[~test]).mean())
@@ -233,7 +233,7 @@ def fit_prior(out: str | Path, cfg, images: Optional[Path] = None, yolo: Optiona
     prec = tp / max(float(pred[test].sum()), 1.0)
     rec = tp / max(float(yb[test].sum()), 1.0)
     # the saved prior is refitted on everything
-    final = fit_classifier(x, y, mcfg.hidden, steps, seed=seed)
+    final = fit_classifier(x, y, HIDDEN, steps, seed=seed)
     meta = {"positive": list(positive), "samples": int(len(y)), "positives": int(y.sum()),
             "test_accuracy": acc_test, "train_accuracy": acc_train, "sources": sources}
     save_prior(out, final, encoder.name, meta)

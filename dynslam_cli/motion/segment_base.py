@@ -1,4 +1,4 @@
-"""The segmenter protocol, part-segment pruning and overlap resolution, the segmenter factory."""
+"""The segmenter protocol, part-segment pruning and overlap resolution."""
 
 from __future__ import annotations
 
@@ -6,8 +6,12 @@ from typing import Optional, Protocol, Sequence
 
 import numpy as np
 
-from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.types import Segmentation
+
+# Instances with fewer pixels (full resolution) after overlap resolution are dropped to background.
+MIN_INSTANCE_AREA = 64
+# T_R: drop segment R1 when area(R1 & R2) > T_R * area(R1) for another segment R2.
+PRUNE_RATIO = 0.9
 
 
 class Segmenter(Protocol):
@@ -25,7 +29,7 @@ def _overlap_matrix(masks: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarra
     return inter, np.diag(inter).copy()
 
 
-def prune_parts(masks: np.ndarray, ratio: float = 0.9, step: int = 2,
+def prune_parts(masks: np.ndarray, ratio: float = PRUNE_RATIO, step: int = 2,
                 order: Optional[np.ndarray] = None) -> np.ndarray:
     """Indices of the masks kept after part-segment pruning (paper, supplementary: T_R = 0.9).
 
@@ -83,17 +87,3 @@ def relabel(ids: np.ndarray, min_area: int = 1) -> tuple[np.ndarray, np.ndarray]
     lut = np.zeros(len(counts), np.int32)
     lut[old] = np.arange(1, len(old) + 1, dtype=np.int32)
     return lut[ids], old
-
-
-def make_segmenter(mcfg, intrinsics=None) -> Segmenter:
-    """The segmenter named by ``motion.segmenter`` (geometric | yolo-seg | fastsam)."""
-    name = mcfg.segmenter
-    if name == "geometric":
-        from dynslam_cli.motion.segment_geometric import GeometricSegmenter
-
-        return GeometricSegmenter.from_config(mcfg, intrinsics)
-    if name in ("yolo-seg", "fastsam"):
-        from dynslam_cli.motion.segment_yolo import YoloSegSegmenter
-
-        return YoloSegSegmenter.from_config(mcfg)
-    raise DynslamError(f"unknown motion.segmenter '{name}'; valid: geometric, yolo-seg, fastsam")

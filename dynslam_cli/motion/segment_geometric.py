@@ -1,6 +1,6 @@
 """Weightless RGB-D instance segmenter: depth discontinuities + surface normals + colour.
 
-Works at a reduced resolution (``geometric_width``, 160 px by default):
+Works at a reduced resolution (``motion.geometric_width``, 320 px by default):
 
 1. depth is median-filtered, back-projected and normals are taken from 2-px central differences;
 2. a pixel is an *edge* when, towards a 4-neighbour, the depth steps by more than
@@ -24,24 +24,32 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from dynslam_cli.motion.segment_base import relabel
-from dynslam_cli.motion.types import Segmentation
+from dynslam_cli.motion.segment_base import MIN_INSTANCE_AREA, relabel
+from dynslam_cli.motion.types import Segmentation, intrinsics_tuple
+
+# Edges: a relative depth step |dd|/d between neighbours, a normal change (degrees) between pixels 3 px apart, or a
+# Lab colour difference where the depth also steps (> a quarter of the jump).
+DEPTH_JUMP = 0.04
+NORMAL_ANGLE = 30.0
+COLOR_JUMP = 40.0
+# Smallest segment as a fraction of the image: 0.2 % (synthetic movers are small and far; the oracle mask IoU, each
+# segment labelled by its ground-truth majority, is 0.84 / 0.74 on walker / kidnap at 320 px; docs/experiments.md).
+MIN_AREA = 0.002
 
 
 def _intrinsics_tuple(intrinsics, w: int, h: int) -> tuple[float, float, float, float]:
     if intrinsics is None:
         f = 525.0 * w / 640.0
         return f, f, (w - 1) / 2.0, (h - 1) / 2.0
-    from dynslam_cli.motion.module import intrinsics_tuple
-
     return intrinsics_tuple(intrinsics)
 
 
 class GeometricSegmenter:
     name = "geometric"
 
-    def __init__(self, intrinsics=None, width: int = 160, depth_jump: float = 0.04, normal_angle: float = 30.0,
-                 color_jump: float = 40.0, min_area: float = 0.004, min_instance_area: int = 64,
+    def __init__(self, intrinsics=None, width: int = 320, depth_jump: float = DEPTH_JUMP,
+                 normal_angle: float = NORMAL_ANGLE, color_jump: float = COLOR_JUMP, min_area: float = MIN_AREA,
+                 min_instance_area: int = MIN_INSTANCE_AREA,
                  fill_radius: int = 6):
         self.intrinsics = intrinsics
         self.width = int(width)
@@ -55,8 +63,7 @@ class GeometricSegmenter:
 
     @classmethod
     def from_config(cls, mcfg, intrinsics=None) -> "GeometricSegmenter":
-        return cls(intrinsics, mcfg.geometric_width, mcfg.geometric_depth_jump, mcfg.geometric_normal_angle,
-                   mcfg.geometric_color_jump, mcfg.geometric_min_area, mcfg.min_instance_area)
+        return cls(intrinsics, mcfg.geometric_width)
 
     def segment(self, rgb: Optional[np.ndarray], depth: np.ndarray) -> Segmentation:
         H, W = depth.shape[:2]

@@ -14,8 +14,11 @@ import numpy as np
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.onnx_utils import check_image_input, describe_io, fixed, ort_session, require_model
-from dynslam_cli.motion.segment_base import masks_to_ids, prune_parts
+from dynslam_cli.motion.segment_base import MIN_INSTANCE_AREA, PRUNE_RATIO, masks_to_ids, prune_parts
 from dynslam_cli.motion.types import Segmentation
+
+# Input size when the ONNX model has a dynamic input shape.
+IMGSZ = 640
 
 EXPECTED_IO = ("YOLOv8-seg / FastSAM outputs: output0 1×(4+C+32)×N (boxes, C class scores, 32 mask "
                "coefficients) and output1 1×32×H×W mask prototypes, from one 1×3×H×W float input")
@@ -174,8 +177,9 @@ class YoloSegSegmenter:
 
     name = "yolo-seg"
 
-    def __init__(self, model_path: str, conf: float = 0.25, iou: float = 0.7, imgsz: int = 640,
-                 prune_ratio: float = 0.9, min_area: int = 64, max_det: int = 100, threads: int = 0):
+    def __init__(self, model_path: str, conf: float = 0.25, iou: float = 0.7, imgsz: int = IMGSZ,
+                 prune_ratio: float = PRUNE_RATIO, min_area: int = MIN_INSTANCE_AREA, max_det: int = 100,
+                 threads: int = 0):
         path = require_model(model_path, "yolo-seg segmenter (motion.segmenter_model)", FASTSAM_RECIPE)
         self.session = ort_session(path, threads)
         self.path = path
@@ -195,10 +199,8 @@ class YoloSegSegmenter:
             self.names = {}
 
     @classmethod
-    def from_config(cls, mcfg) -> "YoloSegSegmenter":
-        return cls(mcfg.segmenter_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou,
-                   imgsz=mcfg.segmenter_imgsz, prune_ratio=mcfg.prune_ratio,
-                   min_area=mcfg.min_instance_area, threads=mcfg.threads)
+    def from_config(cls, mcfg, threads: int = 0) -> "YoloSegSegmenter":
+        return cls(mcfg.segmenter_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou, threads=threads)
 
     def detect(self, rgb: np.ndarray):
         """Boxes, scores, classes and full-resolution masks before pruning."""

@@ -7,6 +7,8 @@ from typing import Optional
 
 import numpy as np
 
+from dynslam_cli.errors import DynslamError
+
 
 @dataclass
 class Segmentation:
@@ -91,3 +93,18 @@ class UpdateRecord:
 
     def to_json(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def intrinsics_tuple(intrinsics) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) from an object with fx/fy/cx/cy, a 3×3 K or a 4-sequence."""
+    if intrinsics is None:
+        raise DynslamError("motion module needs camera intrinsics")
+    if all(hasattr(intrinsics, a) for a in ("fx", "fy", "cx", "cy")):
+        return float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx), float(intrinsics.cy)
+    a = np.asarray(intrinsics, np.float64)
+    if a.shape == (3, 3):
+        return float(a[0, 0]), float(a[1, 1]), float(a[0, 2]), float(a[1, 2])
+    if a.size >= 4:
+        a = a.ravel()
+        return float(a[0]), float(a[1]), float(a[2]), float(a[3])
+    raise DynslamError(f"cannot read intrinsics from {intrinsics!r}")

@@ -27,7 +27,7 @@ from dynslam_cli.utils.io import write_json_atomic, write_text_atomic
 # cache, so about 3 minutes on an idle core.  150 first-frame iterations instead of 300: ATE 0.95 vs
 # 0.64 cm, IoU 0.683 vs 0.686, mesh accuracy 2.8 vs 3.4 cm, about 20 CPU-s less.
 DEMO_SETS = ["synth.width=320", "synth.height=240", "synth.frames=100", "mapping.first_iters=150",
-             "tracking.ignore_border=10", "run.threads=1", "motion.threads=1"]
+             "tracking.ignore_border=10", "run.threads=1"]
 
 
 @dataclass
@@ -74,9 +74,11 @@ def _say(msg: str) -> None:
 
 
 def demo_config(preset: str = "walker", data_root: Optional[Path] = None, sets: Sequence[str] = (),
-                threads: Optional[int] = None, device: Optional[str] = None, seed: Optional[int] = None):
+                threads: Optional[int] = None, device: Optional[str] = None, seed: Optional[int] = None,
+                config_preset: Optional[str] = None):
     """The resolved config of the demo and the overrides that made it (demo settings, then
-    ``--threads``/``--device``/``--seed``, then the user's ``--set``, which win)."""
+    ``--threads``/``--device``/``--seed``, then the user's ``--set``, which win).  ``config_preset``:
+    a configuration preset (configs/presets/, e.g. paper); without one the demo runs dynamic mode."""
     from dynslam_cli.config import load_config
     from dynslam_cli.synth.scene import PRESETS
 
@@ -86,15 +88,16 @@ def demo_config(preset: str = "walker", data_root: Optional[Path] = None, sets: 
         raise DynslamError(f"--threads must be >= 1, got {threads}")
     overrides = list(DEMO_SETS)
     if threads is not None:
-        overrides += [f"run.threads={threads}", f"motion.threads={threads}"]
+        overrides.append(f"run.threads={threads}")
     if device is not None:
         overrides.append(f"run.device={device}")
     if seed is not None:
         overrides.append(f"run.seed={seed}")
     overrides += ["run.save_masks=true"] + list(sets)
     load = overrides + ([f"data.root={data_root}"] if data_root is not None else [])
-    cfg = load_config("synth", preset, None, load)
-    cfg.run.mode = "dynamic"
+    cfg = load_config("synth", preset, None, load, preset=config_preset)
+    if config_preset is None:
+        cfg.run.mode = "dynamic"
     cfg.run.save_masks = True
     return cfg, overrides
 
@@ -102,7 +105,7 @@ def demo_config(preset: str = "walker", data_root: Optional[Path] = None, sets: 
 def run_demo(preset: str = "walker", out: Optional[Path] = None, data_root: Optional[Path] = None,
              sets: Sequence[str] = (), threads: Optional[int] = None, device: Optional[str] = None,
              seed: Optional[int] = None, overwrite: bool = False, progress: bool = True,
-             say: Callable[[str], None] = _say) -> DemoResult:
+             say: Callable[[str], None] = _say, config_preset: Optional[str] = None) -> DemoResult:
     """Render (if needed), run and evaluate the demo; see the module docstring.
 
     The default run folder is the demo's own and is always overwritten (a second ``make demo``
@@ -115,8 +118,9 @@ def run_demo(preset: str = "walker", out: Optional[Path] = None, data_root: Opti
 
     t0 = time.perf_counter()
     spec = f"synth/{preset}"
-    cfg, overrides = demo_config(preset, data_root, sets, threads, device, seed)
-    out_dir = Path(out) if out is not None else default_out_dir(cfg, "synth", preset, "dynamic")
+    cfg, overrides = demo_config(preset, data_root, sets, threads, device, seed, config_preset)
+    variant = Path(config_preset).stem if config_preset else "dynamic"
+    out_dir = Path(out) if out is not None else default_out_dir(cfg, "synth", preset, variant)
     if out_dir.exists() and not out_dir.is_dir():
         raise DynslamError(f"run folder {out_dir} is a file, not a folder")
     held = run_entries(out_dir) if out_dir.is_dir() else []

@@ -19,6 +19,16 @@ import numpy as np
 
 from dynslam_cli.utils.io import atomic_path, write_text_atomic
 
+# A pixel is inconsistent only when no rendered depth within this many pixels (at check resolution) agrees with the
+# observation.
+CHECK_RADIUS = 1
+# No inconsistency check before this frame: the map needs a keyframe and a bundle adjustment beyond frame 0 to judge
+# anything.
+CHECK_WARMUP = 5
+# When a classifier update newly marks more than this fraction of the frame's valid pixels dynamic, the frame is
+# tracked again without them (the paper tracks once).
+RETRACK_FRACTION = 0.02
+
 
 class DynamicLoop:
     """Drives a :class:`~dynslam_cli.slam.system.SLAM` with a
@@ -33,15 +43,11 @@ class DynamicLoop:
         self.mask_dir = mask_dir
         self.records: list[dict] = []
         self.width = int(intrinsics.width)
-        self.check_radius = int(cfg.run.check_radius)
-        self.warmup = int(cfg.run.check_warmup)
-        self.retrack_fraction = float(cfg.run.retrack_fraction)
-        self.occlusion_aware = bool(cfg.run.check_occlusion)
+        self.check_radius = CHECK_RADIUS
+        self.warmup = CHECK_WARMUP
+        self.retrack_fraction = RETRACK_FRACTION
         self.still_frames = int(cfg.run.still_frames)
-        self.still_frames_centre = int(cfg.run.still_frames_centre)
-        self.still_without_centre = bool(cfg.run.still_without_centre)
         self.still_tolerance = float(cfg.run.still_tolerance)
-        self.still_tolerance_centre = float(cfg.run.still_tolerance_centre)
         self.forget_radius = float(cfg.run.forget_radius)
         self.carve_margin = float(cfg.run.carve_margin)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
@@ -51,7 +57,7 @@ class DynamicLoop:
         if self.slam.n_frames == 0:
             gt = getattr(frame, "pose_c2w", None)
             return np.array(gt, np.float64) if gt is not None else np.eye(4)
-        return self.slam._initial_guess()
+        return self.slam.predict_pose()
 
     def _refresh_keyframes(self) -> int:
         """Recompute every keyframe's usable rays from the current classifier, and drop the backend
@@ -97,26 +103,24 @@ class DynamicLoop:
         frustum, observed = keyframe_visibility(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step,
                                                 self.mm.m.depth_threshold)
         out[~frustum] = 0.0
-        return out, observed if self.occlusion_aware else np.ones_like(observed)
+        return out, observed
 
     def stationary(self, depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray) -> Optional[np.ndarray]:
-        """Instances that stayed put over the last ``run.still_frames`` frames (see
-        :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None unless the centre feature is
-        on (without it, 'static' would be learnt for the object everywhere, not at its place) or
-        ``run.still_without_centre`` asks for it anyway.  With the centre feature over
-        ``run.still_frames_centre`` frames (0 = the same) and within ``run.still_tolerance_centre``
-        of what the keyframes saw, without it within ``run.still_tolerance``."""
+        """Instances whose points stayed within ``run.still_tolerance`` (0 = motion.depth_threshold)
+        of the depth every keyframe of the last ``run.still_frames`` frames saw there (see
+        :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None when ``run.still_frames``
+        is 0.  It breaks the loop where a static surface once labelled dynamic is never mapped and
+        so always looks 'in front of the map'.  With ``motion.centre_feature``, where 'static' is
+        learnt at the place only, the window is half as long."""
         centre = bool(self.mm.m.centre_feature)
-        frames = self.still_frames_centre if centre and self.still_frames_centre > 0 else self.still_frames
-        if frames <= 0 or not (centre or self.still_without_centre):
+        frames = self.still_frames // 2 if centre else self.still_frames
+        if frames < 2:
             return None
         from dynslam_cli.slam.keyframes import stationary_instances
 
         now = self.slam.n_frames - 1
         window = [kf for kf in self.slam.keyframes if now - frames <= kf.frame_id < now]
-        # with the centre feature 'static' is learnt at this place only, a looser test costs less
-        tol = self.still_tolerance_centre if centre else self.still_tolerance
-        tol = tol if tol > 0 else self.mm.m.depth_threshold
+        tol = self.still_tolerance if self.still_tolerance > 0 else self.mm.m.depth_threshold
         return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, tol)
 
     def forget_departed(self, res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray) -> int:

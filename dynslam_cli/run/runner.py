@@ -6,7 +6,7 @@ builds the SLAM system, processes every frame (static mode: Co-SLAM; dynamic mod
 of ``run/dynamic.py`` decides which pixels are static), writes checkpoints every
 ``run.checkpoint_every`` frames and at the end the trajectory, mesh, timing and run.json.  Every file
 is written atomically; run.json says ``completed`` only after every other file is written, ``failed``
-after an error and ``interrupted`` after Ctrl-C or ``run.stop_after``.
+after an error and ``interrupted`` after Ctrl-C or ``stop_after`` frames.
 
 A checkpoint records what it belongs to (:func:`run_identity`: the sequence with a hash of its
 frame list, the flattened config, the code version); ``resume`` refuses a checkpoint whose record
@@ -170,7 +170,7 @@ def run_identity(spec: str, seq, cfg) -> dict:
 
 
 # Keys that say when a run stops or saves and where files live, not what it computes: free on --resume.
-RESUME_FREE_KEYS = ("run.stop_after", "run.checkpoint_every", "run.keep_checkpoint", "run.results_root", "data.root")
+RESUME_FREE_KEYS = ("run.checkpoint_every", "run.keep_checkpoint", "run.results_root", "data.root")
 _ABSENT = "<absent>"
 
 
@@ -244,8 +244,11 @@ def _say(progress: bool, msg: str) -> None:
 
 
 def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = False, overwrite: bool = False,
-                 progress: bool = True) -> RunResult:
+                 progress: bool = True, stop_after: int = 0) -> RunResult:
     """Run SLAM on sequence ``spec`` with the resolved config ``cfg``; see the module docstring.
+
+    ``stop_after`` > 0 (for tests of resuming): stop, status ``interrupted``, with a checkpoint, after
+    processing this many frames in this call.
 
     ``out_dir`` defaults to ``run.results_root/<dataset>/<name>/<mode>``.  A folder that already holds
     a run is refused unless ``overwrite`` (its run files are deleted first) or ``resume``.
@@ -266,6 +269,7 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
         claim_folder(out, resume=resume, overwrite=overwrite)  # refuses before anything is written
         state = resume_state(out / "checkpoint.pt", identity) if resume else None
         run = _Run(spec, cfg, seq, out, device, threads, identity, progress)
+        run.stop_after = max(0, int(stop_after))
         return run.execute(state)
 
 
@@ -288,6 +292,7 @@ class _Run:
             "finished": None, "error": None,
         }
         self.slam = self.loop = self.bar = None
+        self.stop_after = 0
         self.timings: dict = {}
 
     def execute(self, state: Optional[dict]) -> RunResult:
@@ -303,7 +308,7 @@ class _Run:
             done = self._frames(start)
             if done < self.n:
                 processed = done - start
-                self.meta.update(status="interrupted", error=f"stopped after {processed} frames (run.stop_after)")
+                self.meta.update(status="interrupted", error=f"stopped after {processed} frames (stop_after)")
                 write_json_atomic(self.run_json, self.meta)
                 return RunResult("interrupted", self.out, done, 0.0, {"run": self.run_json, "checkpoint": self.ckpt})
             fps, paths = self._finish()
@@ -374,7 +379,7 @@ class _Run:
         return {"track": r.track.ms, "map": 0.0 if r.map is None else r.map.ms, "frame": r.ms, "_loss": r.track.loss}
 
     def _frames(self, start: int) -> int:
-        """Process frames from ``start``; returns the next frame (``n`` unless run.stop_after stopped it)."""
+        """Process frames from ``start``; returns the next frame (``n`` unless stop_after stopped it)."""
         cfg, n = self.cfg, self.n
         if start == 0:
             _say(self.progress, f"initialising the map from frame 0 ({cfg.mapping.first_iters} iterations)...")
@@ -395,7 +400,7 @@ class _Run:
                 else:
                     self.bar.set_postfix(post, refresh=False)
                     self.bar.update(1)
-            stop = cfg.run.stop_after > 0 and done - start >= cfg.run.stop_after and done < n
+            stop = self.stop_after > 0 and done - start >= self.stop_after and done < n
             periodic = cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n
             if periodic or stop:
                 _save_checkpoint(self.ckpt, self.slam, done, self.timings, self.identity, self.loop)

@@ -19,15 +19,50 @@ import torch
 from dynslam_cli.backend.backend import Backend
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import backproject, pixel_dirs
-from dynslam_cli.geometry.features import FeatureOdometry, FeatureSet
 from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
-from dynslam_cli.map.losses import ray_losses, sdf_band, smoothness_points, smoothness_tv
+from dynslam_cli.map.losses import ray_losses, smoothness_points, smoothness_tv
 from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.map.render import render_rays, sample_depths
 from dynslam_cli.slam.keyframes import Keyframe, depth_edges, subsample_depth, valid_pixels
 
 log = logging.getLogger(__name__)
+
+# Margin (m) added around the first frame's points when map.bounds is null.
+AUTO_MARGIN = 2.0
+# A tracked pose moving more than this (m) from its initial guess is divergence; an ICP initial guess farther than
+# this from the constant-velocity one is not used.
+MAX_JUMP = 0.3
+# Fewer usable pixels than this: dense tracking is skipped (constant-velocity pose, logged).
+MIN_PIXELS = 50
+# Tracking, ICP and mapping rays avoid pixels within this many pixels of a depth discontinuity (a step of >5 % at
+# 540 px focal length, or a hole): the map blurs edges, and on real depth they bias the pose.
+EDGE_MARGIN = 2
+# Dense tracking draws new rays every iteration (Co-SLAM) and returns the lowest-loss pose seen.
+RESAMPLE_RAYS = True
+# ICP initial guess (tracking.icp_init): pyramid downsampling factors, coarse to fine (640x480 -> 80x60, 160x120,
+# 320x240), and Gauss-Newton iterations per level.
+ICP_FACTORS = (8, 4, 2)
+ICP_ITERS = (8, 5, 3)
+# ICP: at most about this many current points per level (an even stride); 0 = all. 20000 halves ICP time but cost
+# 0.1-0.4 cm ATE on Bonn crowd frames 0-39.
+ICP_MAX_POINTS = 0
+# ICP: associations farther apart than this (m) are rejected.
+ICP_MAX_DIST = 0.1
+# ICP result ignored (constant-velocity guess kept) when fewer of the current points associate.
+ICP_MIN_FRACTION = 0.2
+# Rays per mapping iteration on the first frame.
+FIRST_RAYS = 2048
+# At least this many of the BA rays come from the current frame (Co-SLAM min_pixels_cur).
+MIN_RAYS_CURRENT = 100
+# Bundle adjustment steps the pose optimiser once every N iterations on the gradients summed over them (Co-SLAM
+# pose_accum_step); the map steps every iteration.  The first keyframe's pose stays fixed, the current frame's is
+# refined with the keyframes' (Co-SLAM optim_cur).
+POSE_ACCUM_STEPS = 5
+# render() (the dynamic check) without depth: coarse samples over [near, far], then fine samples around the first
+# surface crossing (32 / 8 at check resolution; Co-SLAM renders 64 / 16).
+RENDER_COARSE = 32
+RENDER_FINE = 8
 
 
 @dataclass
@@ -111,12 +146,8 @@ class SLAM:
         self._cur: Optional[_Current] = None
         self._kf_cache = None  # concatenated keyframe rays (torch) and owners
         self._prev_depth: Optional[np.ndarray] = None  # last tracked frame's (masked) depth, ICP reference
-        self._feat_refs: list[tuple[int, FeatureSet]] = []  # (frame id, keypoints): feature-init references
-        self._odometry: Optional[FeatureOdometry] = None
-        self._undo: Optional[tuple] = None  # (ICP reference, feature reference) before the last track(), for retrack()
+        self._undo: Optional[tuple] = None  # (ICP reference,) before the last track(), for retrack()
         self.last_icp = None  # ICPResult of the last tracked frame (diagnostics)
-        self.last_pnp = None  # PnPResult of the last tracked frame's feature init (diagnostics)
-        self._pnp_inliers: dict[int, int] = {}  # frame id -> PnP inliers of its feature init (last two frames)
         self.backend: Optional[Backend] = None  # the keyframe backend (tracking.backend), made on frame 0
         self.backend_keyframe = False  # whether the last map() inserted a backend keyframe
 
@@ -124,27 +155,6 @@ class SLAM:
     @property
     def n_frames(self) -> int:
         return len(self.poses)
-
-    def _in_mode(self, value, dynamic_value):
-        """``dynamic_value`` in dynamic mode when it is set (>= 0), else ``value`` (the *_dynamic keys)."""
-        if getattr(self.cfg.run, "mode", "") == "dynamic" and dynamic_value >= 0:
-            return dynamic_value
-        return value
-
-    @property
-    def tracking_iters(self) -> int:
-        """tracking.iters, or tracking.iters_dynamic in dynamic mode when that is set."""
-        return int(self._in_mode(self.cfg.tracking.iters, self.cfg.tracking.iters_dynamic))
-
-    @property
-    def feature_refs(self) -> int:
-        """tracking.feature_refs, or tracking.feature_refs_dynamic in dynamic mode when that is set."""
-        return max(1, int(self._in_mode(self.cfg.tracking.feature_refs, self.cfg.tracking.feature_refs_dynamic)))
-
-    @property
-    def lr_pose(self) -> float:
-        """mapping.lr_pose, or mapping.lr_pose_dynamic in dynamic mode when that is set."""
-        return float(self._in_mode(self.cfg.mapping.lr_pose, self.cfg.mapping.lr_pose_dynamic))
 
     def _t(self, a, dtype=torch.float32) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a), dtype=dtype).to(self.device)
@@ -184,34 +194,22 @@ class SLAM:
             p.requires_grad_(on)
 
     # ------------------------------------------------------------------ tracking
+    def predict_pose(self) -> np.ndarray:
+        """The next frame's pose predicted by the constant-velocity model (before it is tracked)."""
+        return self._initial_guess()
+
     def _initial_guess(self, cur: Optional[_Current] = None) -> np.ndarray:
-        tc = self.cfg.tracking
+        """The current frame's initial pose: constant velocity, refined by ICP against the previous
+        frame's depth (tracking.icp_init) where that converges near it."""
         p1 = self.poses[-1]
         rel = np.eye(4)  # previous camera <- current camera
-        if len(self.poses) >= 2 and tc.const_velocity:
+        if len(self.poses) >= 2:
             rel = inv_np(self.poses[-2]) @ p1
         self.last_icp = None
-        self.last_pnp = None
-        if tc.feature_init and cur is not None and self._feat_refs and "features" in cur.extra:
-            refs = [(self._pose_of(fid), fs) for fid, fs in self._feat_refs]
-            res = self._feature_odometry().estimate_multi(refs, cur.extra["features"])
-            self.last_pnp = res
-            prev = self._pnp_inliers.get(cur.idx - 1)
-            self._pnp_inliers = {k: v for k, v in self._pnp_inliers.items() if k == cur.idx - 1}
-            self._pnp_inliers[cur.idx] = int(res.inliers) if res.ok else 0
-            dropped = res.ok and prev is not None and res.inliers < tc.feature_min_inlier_ratio * prev
-            if dropped:
-                self._guess_rejected(cur.idx, f"feature guess from {res.inliers} PnP inliers, fewer than "
-                                              f"tracking.feature_min_inlier_ratio {tc.feature_min_inlier_ratio} "
-                                              f"of the previous frame's {prev}")
-            if res.ok and not dropped:
-                cand = inv_np(p1) @ res.T
-                if self._plausible(cand, rel, "feature", cur.idx) and self._verified(cur, cand, rel):
-                    return orthonormalize(p1 @ cand)  # ICP only where the features fail
-        if tc.icp_init and cur is not None and self._prev_depth is not None:
+        if self.cfg.tracking.icp_init and cur is not None and self._prev_depth is not None:
             res = icp_depth(self._prev_depth, self._icp_depth(cur), (self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy),
-                            init=rel, factors=tuple(tc.icp_factors), iters=tuple(tc.icp_iters),
-                            max_dist=tc.icp_max_dist, min_fraction=tc.icp_min_fraction, max_points=tc.icp_max_points)
+                            init=rel, factors=ICP_FACTORS, iters=ICP_ITERS, max_dist=ICP_MAX_DIST,
+                            min_fraction=ICP_MIN_FRACTION, max_points=ICP_MAX_POINTS)
             self.last_icp = res
             if res.ok and self._plausible(res.T, rel, "ICP", cur.idx):
                 rel = res.T
@@ -224,104 +222,25 @@ class SLAM:
         return float(np.linalg.norm(cand[:3, 3] - rel[:3, 3]))
 
     def _plausible(self, cand: np.ndarray, rel: np.ndarray, source: str, idx: int) -> bool:
-        """Whether an initial-guess step ``cand`` lies within ``tracking.max_jump`` of the
+        """Whether an initial-guess step ``cand`` lies within ``MAX_JUMP`` of the
         constant-velocity step ``rel``; a rejected one is logged as a ``guess_rejected`` event
         (tracking_events.json)."""
         off = self._off_velocity(cand, rel)
-        if off <= self.cfg.tracking.max_jump:
+        if off <= MAX_JUMP:
             return True
-        self._guess_rejected(idx, f"{source} step {off:.3f} m from constant velocity > tracking.max_jump "
-                                  f"{self.cfg.tracking.max_jump}")
+        self._guess_rejected(idx, f"{source} step {off:.3f} m from constant velocity > {MAX_JUMP} m")
         return False
-
-    def _verified(self, cur: _Current, cand: np.ndarray, rel: np.ndarray) -> bool:
-        """Whether a feature step ``cand`` farther than ``tracking.feature_verify`` (m) from the
-        constant-velocity step ``rel`` fits the map at least as well as that step does (median
-        SDF residual of the same static rays); a step that fits worse is rejected (logged), and so is
-        any far step where fewer than ``tracking.feature_verify_min_static`` of the frame's pixels
-        are static with depth (too little of the map in view to judge it)."""
-        tc = self.cfg.tracking
-        off = self._off_velocity(cand, rel)
-        if tc.feature_verify <= 0 or off <= tc.feature_verify or self.model is None:
-            return True
-        static = len(cur.valid) / float(self.H * self.W)
-        if static < tc.feature_verify_min_static:
-            self._guess_rejected(cur.idx, f"feature step {off:.3f} m from constant velocity with {static:.1%} of the "
-                                          f"pixels static, below tracking.feature_verify_min_static "
-                                          f"{tc.feature_verify_min_static:g}")
-            return False
-        p1 = self.poses[-1]
-        r_feat = self.map_residual(cur, p1 @ cand)
-        r_cv = self.map_residual(cur, p1 @ rel)
-        if not r_cv < r_feat:
-            return True
-        self._guess_rejected(cur.idx, f"feature step {off:.3f} m from constant velocity fits the map worse "
-                                      f"(median SDF residual {r_feat * 100:.2f} cm against {r_cv * 100:.2f} cm)")
-        return False
-
-    @torch.no_grad()
-    def map_residual(self, cur: _Current, pose_c2w: np.ndarray, n_rays: int = 0) -> float:
-        """Median over rays of the map's mean absolute SDF residual (m) inside the truncation band,
-        with the current frame's static pixels placed at ``pose_c2w``; the same rays for every pose
-        of a frame (drawn from the frame index, not from the run's random stream)."""
-        n = int(n_rays or self.cfg.tracking.n_rays)
-        valid = self._without_edges(cur, cur.valid, self.cfg.tracking.edge_margin)
-        if len(valid) == 0:
-            return float("inf")
-        idx = torch.from_numpy(valid[np.random.default_rng(cur.idx).integers(0, len(valid), size=n)]).to(self.device)
-        d_t = cur.depth[idx]
-        z = sample_depths(d_t, self.cfg.map, perturb=False)
-        T = self._t(pose_c2w)
-        out = render_rays(self.model, T[:3, 3].unsqueeze(0), self.dirs[idx] @ T[:3, :3].T, z, color=False)
-        tr = self.cfg.map.truncation
-        _, band = sdf_band(z, d_t, tr, out["sdf"].dtype)  # the SDF loss's band and residual
-        n_band = band.sum(1)
-        err = ((z + out["sdf"] * tr - d_t[:, None]).abs() * band).sum(1) / n_band.clamp_min(1)
-        return float(err[n_band > 0].median()) if bool((n_band > 0).any()) else float("inf")
 
     def _guess_rejected(self, idx: int, detail: str) -> None:
         """Log an initial guess that was not used (a ``guess_rejected`` event, tracking_events.json)."""
         self.events.append({"frame": int(idx), "kind": "guess_rejected", "detail": detail})
         log.info("frame %d: %s", idx, detail)
 
-    def _feature_odometry(self) -> FeatureOdometry:
-        if self._odometry is None:
-            tc = self.cfg.tracking
-            self._odometry = FeatureOdometry(self.intr.fx, self.intr.fy, self.intr.cx, self.intr.cy, self.W,
-                                             n_features=tc.feature_count, ratio=tc.feature_ratio,
-                                             ransac_px=tc.feature_ransac_px, min_inliers=tc.feature_min_inliers)
-        return self._odometry
-
-    def _detect_features(self, frame, cur: _Current) -> None:
-        """ORB keypoints of the current frame on its static pixels, with the depth before the
-        data layer's depth cut (``frame.depth_full``) where the frame has it."""
-        if not self.cfg.tracking.feature_init or self.cfg.tracking.backend:
-            return
-        full = getattr(frame, "depth_full", None)
-        depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
-        cur.extra["features"] = self._feature_odometry().detect(cur.rgb_np, depth, cur.mask)
-
     def _pose_of(self, i: int) -> np.ndarray:
         """Frame ``i``'s pose as the trajectory has it (relative to its keyframe, which bundle
         adjustment refines)."""
         r = self.rel[i]
         return self.poses[i] if r is None else self.poses[self.kf_of[i]] @ r
-
-    def _update_feature_ref(self, cur: _Current) -> None:
-        """The frame just tracked becomes a feature reference when there is none, when its feature
-        init failed, or when it shared too few inliers with the newest reference; the oldest
-        beyond tracking.feature_refs (feature_refs_dynamic) are dropped."""
-        fs = cur.extra.get("features")
-        if fs is None:
-            self._feat_refs = []
-            return
-        res = self.last_pnp
-        tc = self.cfg.tracking
-        if self._feat_refs and res is not None and res.ok:
-            n_ref = int((self._feat_refs[-1][1].depth > 0).sum())
-            if res.ref_inliers[-1] >= tc.feature_keep_ref * n_ref:
-                return
-        self._feat_refs = (self._feat_refs + [(cur.idx, fs)])[-self.feature_refs:]
 
     def _edges(self, cur: _Current, margin: int) -> np.ndarray:
         """Depth-edge pixels of the current frame within ``margin`` px (cached per margin).
@@ -337,32 +256,29 @@ class SLAM:
 
     def _without_edges(self, cur: _Current, pixels: np.ndarray, margin: int) -> np.ndarray:
         """``pixels`` (flat indices) without depth-edge pixels, unless that leaves fewer than
-        tracking.min_pixels (then all of them)."""
+        MIN_PIXELS (then all of them)."""
         if margin <= 0 or len(pixels) == 0:
             return pixels
         sub = pixels[~self._edges(cur, margin).reshape(-1)[pixels]]
-        return sub if len(sub) >= self.cfg.tracking.min_pixels else pixels
+        return sub if len(sub) >= MIN_PIXELS else pixels
 
     @staticmethod
     def _masked_depth(cur: _Current) -> np.ndarray:
         return cur.depth_np if cur.mask is None else np.where(cur.mask, cur.depth_np, 0).astype(np.float32)
 
     def _icp_depth(self, cur: _Current) -> np.ndarray:
-        """The depth ICP aligns: static pixels, without depth edges (tracking.edge_margin)."""
-        d = self._masked_depth(cur)
-        m = self.cfg.tracking.edge_margin
-        return d if m <= 0 else np.where(self._edges(cur, m), 0, d).astype(np.float32)
+        """The depth ICP aligns: static pixels, without depth edges (EDGE_MARGIN)."""
+        return np.where(self._edges(cur, EDGE_MARGIN), 0, self._masked_depth(cur)).astype(np.float32)
 
     def track(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
         t0 = time.perf_counter()
         cur = self._prepare(frame, mask)
         self._cur = cur
-        self._detect_features(frame, cur)
         if self.n_frames == 0:
             gt = getattr(frame, "pose_c2w", None)
             pose = np.array(gt, np.float64) if gt is not None else np.eye(4)
             if self.model is None:
-                b = self.bounds if self.bounds is not None else auto_bounds(frame, self.intr, pose, self.cfg.map.auto_margin)
+                b = self.bounds if self.bounds is not None else auto_bounds(frame, self.intr, pose, AUTO_MARGIN)
                 self._build_model(b)
             if self.cfg.tracking.backend:
                 i = self.intr
@@ -370,7 +286,7 @@ class SLAM:
                 self._backend_track(frame, cur)
             return self._finish_track(cur, pose, 0.0, 0, False, t0)
         tc = self.cfg.tracking
-        iters = self.tracking_iters
+        iters = int(tc.iters)
         if self.backend is not None:
             out = self._backend_track(frame, cur)
             if not out.lost:
@@ -380,14 +296,14 @@ class SLAM:
             init = out.pose_c2w
         else:
             init = self._initial_guess(cur)
-        tvalid = self._without_edges(cur, cur.valid, tc.edge_margin)
-        if len(tvalid) < tc.min_pixels or iters <= 0:
+        tvalid = self._without_edges(cur, cur.valid, EDGE_MARGIN)
+        if len(tvalid) < MIN_PIXELS or iters <= 0:
             reason = f"only {len(tvalid)} usable pixels" if iters > 0 else ""
             if reason:
                 self._event(cur.idx, "skipped", reason)
             return self._finish_track(cur, init, float("nan"), 0, bool(reason), t0, reason)
-        R, S = tc.n_rays, self.cfg.map.samples_free + self.cfg.map.samples_surface
-        if tc.resample_rays:
+        R, S = tc.n_rays, self.cfg.map.SAMPLES_FREE + self.cfg.map.samples_surface
+        if RESAMPLE_RAYS:
             idx = torch.from_numpy(self._sample(tvalid, iters * R)).to(self.device)
         else:
             idx = torch.from_numpy(np.tile(self._sample(tvalid, R), iters)).to(self.device)
@@ -413,14 +329,12 @@ class SLAM:
                 if not np.isfinite(lv):
                     bad = f"non-finite loss at iteration {it}"
                     break
-                if lv < best_loss or not tc.keep_best:
+                if lv < best_loss:
                     best_loss = lv
                     best_xi = xi.detach().clone()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-            if not tc.keep_best and not bad:
-                best_xi = xi.detach().clone()
         finally:
             self._set_map_grad(True)
         pose = init @ se3_exp(best_xi.double().cpu()).numpy() if self.device.type != "cpu" else \
@@ -428,8 +342,8 @@ class SLAM:
         jump = float(np.linalg.norm(pose[:3, 3] - init[:3, 3]))
         if not bad and (not np.all(np.isfinite(pose)) or best_loss == float("inf")):
             bad = "non-finite pose"
-        if not bad and jump > tc.max_jump:
-            bad = f"jump of {jump:.3f} m > tracking.max_jump {tc.max_jump}"
+        if not bad and jump > MAX_JUMP:
+            bad = f"jump of {jump:.3f} m > {MAX_JUMP} m"
         if bad:
             self._event(cur.idx, "diverged", bad)
             return self._finish_track(cur, init, best_loss, iters, True, t0, bad)
@@ -471,17 +385,16 @@ class SLAM:
             return TrackResult(self.poses[-1].copy(), float("nan"), 0, False, 0.0, "backend pose kept")
         for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
             lst.pop()
-        self._prev_depth, self._feat_refs = self._undo
+        self._prev_depth = self._undo[0]
         return self.track(frame, mask)
 
     def _finish_track(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
         ke = self.cfg.mapping.keyframe_every
-        self._undo = (self._prev_depth, list(self._feat_refs))
+        self._undo = (self._prev_depth,)
         if self.backend is not None and cur.idx > 0:  # a lost frame's pose came from dense tracking
             self.backend.correct_last(pose)
         if self.backend is None:
             self._prev_depth = self._icp_depth(cur) if self.cfg.tracking.icp_init else None
-            self._update_feature_ref(cur)
         self.poses.append(np.array(pose, np.float64))
         self.timestamps.append(cur.timestamp)
         kf_id = (cur.idx // ke) * ke
@@ -504,8 +417,6 @@ class SLAM:
             cur.mask = np.asarray(mask, bool)
             if self.cfg.tracking.icp_init and self.backend is None:  # the next frame's ICP aligns to the static pixels
                 self._prev_depth = self._icp_depth(cur)
-            if self._feat_refs and self._feat_refs[-1][0] == cur.idx:  # so do the next frames' features
-                self._feat_refs[-1] = (cur.idx, self._feat_refs[-1][1].masked(cur.mask))
         mc = self.cfg.mapping
         t0 = time.perf_counter()
         self.backend_keyframe = False
@@ -518,7 +429,7 @@ class SLAM:
         iters, loss = 0, float("nan")
         if cur.idx == 0:
             if mc.first_iters > 0:
-                loss = self._optimize(cur, mc.first_iters, mc.first_rays, first=True)
+                loss = self._optimize(cur, mc.first_iters, FIRST_RAYS, first=True)
                 iters, ba = mc.first_iters, True
         elif mc.every > 0 and cur.idx % mc.every == 0 and mc.iters > 0:
             loss = self._optimize(cur, mc.iters, mc.n_rays, first=False)
@@ -533,7 +444,7 @@ class SLAM:
 
     def _add_keyframe(self, cur: _Current, frame, instance_ids) -> None:
         cand = self._without_edges(cur, valid_pixels(cur.depth_np, None, self.cfg.tracking.ignore_border),
-                                   self.cfg.mapping.edge_margin)
+                                   EDGE_MARGIN)
         n = max(1, int(round(self.cfg.mapping.keyframe_ray_fraction * self.H * self.W)))
         n = min(n, len(cand))
         sel = np.sort(self.rng.choice(cand, size=n, replace=False)) if n > 0 else np.zeros(0, np.int64)
@@ -569,15 +480,14 @@ class SLAM:
     def ba_ray_indices(self, cur: _Current, iters: int, n_rays: int, use_keyframes: bool = True):
         """Rays for ``iters`` BA iterations: indices into the concatenated keyframe rays (usable
         ones only) and flat pixel indices of the current frame (its valid, unmasked pixels)."""
-        mc = self.cfg.mapping
         n_kf = len(self.keyframes) if use_keyframes else 0
         usable = np.flatnonzero(np.concatenate([k.usable for k in self.keyframes])) if n_kf else np.zeros(0, np.int64)
         if len(usable) == 0:
             n_cur, n_kfr = n_rays, 0
         else:
-            n_cur = min(n_rays, max(n_rays // (n_kf + 1), mc.min_rays_current))
+            n_cur = min(n_rays, max(n_rays // (n_kf + 1), MIN_RAYS_CURRENT))
             n_kfr = n_rays - n_cur
-        cur_valid = self._without_edges(cur, cur.valid, mc.edge_margin)
+        cur_valid = self._without_edges(cur, cur.valid, EDGE_MARGIN)
         if len(cur_valid) == 0:
             n_cur, n_kfr = 0, (n_rays if len(usable) else 0)
         kf_idx = usable[self.rng.integers(0, len(usable), size=iters * n_kfr)] if n_kfr else np.zeros(0, np.int64)
@@ -600,14 +510,12 @@ class SLAM:
         n_p = base.shape[0]
         opt_mask = torch.ones(n_p, 1, device=self.device)
         if not first:
-            if mc.fix_first_pose:
-                opt_mask[0] = 0
-            if not mc.optimize_current:
-                opt_mask[-1] = 0
-        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and self.lr_pose > 0 and self.backend is None
+            opt_mask[0] = 0  # the first keyframe's pose stays fixed
+        lr_pose = float(mc.lr_pose)
+        optimise_poses = (not first) and bool(opt_mask.sum() > 0) and lr_pose > 0 and self.backend is None
         xi = torch.zeros(n_p, 6, device=self.device, requires_grad=optimise_poses)
-        pose_opt = torch.optim.Adam([xi], lr=self.lr_pose) if optimise_poses else None
-        S = mp.samples_free + mp.samples_surface
+        pose_opt = torch.optim.Adam([xi], lr=lr_pose) if optimise_poses else None
+        S = mp.SAMPLES_FREE + mp.samples_surface
         # sample all iterations' rays up front
         cur_idx = torch.from_numpy(cur_idx_np).to(self.device) if n_cur else None
         kf_idx = torch.from_numpy(kf_idx_np).to(self.device) if n_kfr else None
@@ -630,12 +538,12 @@ class SLAM:
         z_a = sample_depths(d_a.reshape(-1), mp, self.tgen).view(iters, R, S)
         b = self.model.bounds
         smooth_box = None
-        if mp.w_smooth > 0:
-            side = mp.smooth_grid * mp.smooth_voxel
+        if mp.W_SMOOTH > 0:
+            side = mp.SMOOTH_GRID * mp.SMOOTH_VOXEL
             hi = np.maximum(b[1] - side, b[0])
             smooth_box = self._t(np.stack([b[0], hi]))
         last = float("nan")
-        accum = max(1, int(mc.pose_accum_steps))
+        accum = POSE_ACCUM_STEPS
         for it in range(iters):
             if optimise_poses:
                 T = base_t @ se3_exp(xi * opt_mask)
@@ -652,7 +560,7 @@ class SLAM:
             out = render_rays(self.model, o, d, z_a[it], grid_extra=spts)
             loss = ray_losses(out, z_a[it], rgb_a[it], d_a[it], mp).total
             if spts is not None:
-                loss = loss + mp.w_smooth * smoothness_tv(out["grid_extra"], mp)
+                loss = loss + mp.W_SMOOTH * smoothness_tv(out["grid_extra"], mp)
             self.map_opt.zero_grad(set_to_none=True)
             loss.backward()
             self.map_opt.step()
@@ -723,7 +631,7 @@ class SLAM:
         o = T[:3, 3].unsqueeze(0)
         depth = torch.zeros(len(d), device=self.device)
         rgb = torch.zeros(len(d), 3, device=self.device)
-        nc, nf = mp.render_coarse, mp.render_fine
+        nc, nf = RENDER_COARSE, RENDER_FINE
         zc = mp.near + (torch.arange(nc, device=self.device, dtype=torch.float32) + 0.5) / nc * (mp.far - mp.near)
         tr = self.model.truncation
         chunk = max(1, 65536 // nc)
@@ -781,8 +689,6 @@ class SLAM:
             "rng": self.rng.bit_generator.state,
             "tgen": self.tgen.get_state().cpu(),
             "prev_depth": None if self._prev_depth is None else self._prev_depth.copy(),
-            "feat_refs": [{"frame": fid, **fs.to_dict()} for fid, fs in self._feat_refs],
-            "pnp_inliers": dict(self._pnp_inliers),
             "backend": None if self.backend is None else self.backend.state_dict(),
         }
 
@@ -804,10 +710,6 @@ class SLAM:
         self._kf_cache = None
         pd = d.get("prev_depth")
         self._prev_depth = None if pd is None else np.asarray(pd, np.float32)
-        old = d.get("feat_ref")  # checkpoints written before tracking.feature_refs held one reference
-        refs = d.get("feat_refs", [] if old is None else [old])
-        self._feat_refs = [(int(fr["frame"]), FeatureSet.from_dict(fr)) for fr in refs]
-        self._pnp_inliers = {int(k): int(v) for k, v in d.get("pnp_inliers", {}).items()}
         self.backend = None
         if d.get("backend") is not None:
             i = self.intr

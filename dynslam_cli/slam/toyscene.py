@@ -103,10 +103,12 @@ def tiny_config(**overrides):
 
     cfg = Config()
     sets = {
-        "run.mode": "static", "tracking.backend": False, "map.n_levels": 6, "map.log2_hashmap_size": 14, "map.base_resolution": 8,
+        "run.mode": "static", "tracking.backend": False, "map.n_levels": 6, "map.log2_hashmap_size": 14,
         "map.voxel_size": 0.05, "map.bounds": [[-1.7, -1.4, -0.8], [1.7, 1.4, 3.2]],
         "tracking.ignore_border": 2, "tracking.n_rays": 256, "tracking.iters": 10,
-        "mapping.first_iters": 100, "mapping.first_rays": 512, "mapping.n_rays": 512, "mapping.iters": 5,
+        "mapping.first_iters": 100, "mapping.n_rays": 512, "mapping.iters": 5,
     }
     sets.update(overrides)
-    return apply_overrides(cfg, [f"{k}={v}" for k, v in sets.items()])
+    cfg = apply_overrides(cfg, [f"{k}={v}" for k, v in sets.items()])
+    cfg.map.BASE_RESOLUTION = 8  # a coarser first level for the small box (a constant, shadowed on this instance)
+    return cfg

@@ -30,6 +30,8 @@ if TYPE_CHECKING:  # importing synth.config first would be circular (config.sche
 __all__ = ["PRESETS", "SynthResult", "render_preset", "intrinsics_for", "MOTION_THRESHOLD"]
 
 MOTION_THRESHOLD = 0.005  # metres: an object moving more than this between frames is dynamic
+FPS = 30.0  # frame rate of the rendered timestamps
+EDGE_HOLES = True  # depth is dropped at depth discontinuities, like a structured-light sensor
 
 
 @dataclass
@@ -55,8 +57,6 @@ def _check(preset: str, cfg: SynthConfig, frames: int) -> None:
         raise DynslamError(f"synth size {cfg.width}x{cfg.height} out of range (8..4096 per side)")
     if frames < 1:
         raise DynslamError(f"synth frames must be >= 1, got {frames}")
-    if not cfg.fps > 0:
-        raise DynslamError(f"synth.fps must be > 0, got {cfg.fps}")
     if cfg.depth_noise < 0 or cfg.rgb_noise < 0:
         raise DynslamError(f"synth noise must be >= 0 (depth_noise={cfg.depth_noise}, rgb_noise={cfg.rgb_noise})")
     if not 0 <= cfg.depth_holes < 1:
@@ -210,7 +210,7 @@ def render_preset(preset: str, out_dir: Path, cfg: SynthConfig, frames: int | No
     if out_dir == Path.cwd().resolve() or out_dir.parent == out_dir:
         raise DynslamError(f"output folder {given} is the current or root folder; choose a new folder")
     _check_out_dir(out_dir)
-    W, H, fps = int(cfg.width), int(cfg.height), float(cfg.fps)
+    W, H, fps = int(cfg.width), int(cfg.height), FPS
     intr = intrinsics_for(W, H)
     scene = build_scene(preset, int(cfg.seed), n, fps, intr, W, H)
     times = np.arange(n) / fps
@@ -245,7 +245,7 @@ def render_preset(preset: str, out_dir: Path, cfg: SynthConfig, frames: int | No
                     scene.textures, np.asarray(scene.light, np.float64), float(scene.ambient),
                 )
                 rng = np.random.default_rng(np.random.SeedSequence([int(cfg.seed), PRESETS.index(preset), 7, i]))
-                d16 = sense_depth(depth, rng, cfg.depth_noise, cfg.depth_holes, cfg.edge_holes, intr[0])
+                d16 = sense_depth(depth, rng, cfg.depth_noise, cfg.depth_holes, EDGE_HOLES, intr[0])
                 rgb8 = sense_rgb(rgb, rng, cfg.rgb_noise)
                 dyn_ids = [mv.id for m, mv in enumerate(scene.movers) if moving[m, i]]
                 dyn = (np.isin(inst, dyn_ids) if dyn_ids else np.zeros(inst.shape, bool)).astype(np.uint8) * 255
@@ -274,7 +274,7 @@ def render_preset(preset: str, out_dir: Path, cfg: SynthConfig, frames: int | No
             "preset": preset, "seed": int(cfg.seed), "size": [W, H], "fps": fps,
             "intrinsics": [round(v, 6) for v in intr], "depth_scale": DEPTH_SCALE, "frames": n,
             "sensor": {"depth_noise": cfg.depth_noise, "depth_holes": cfg.depth_holes,
-                       "edge_holes": bool(cfg.edge_holes), "rgb_noise": cfg.rgb_noise},
+                       "edge_holes": EDGE_HOLES, "rgb_noise": cfg.rgb_noise},
             "motion_threshold": MOTION_THRESHOLD,
             "instances": instances,
         }

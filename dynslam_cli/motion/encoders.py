@@ -1,0 +1,25 @@
+"""The encoder factory: the encoder ``motion.encoder`` names."""
+
+from __future__ import annotations
+
+from dynslam_cli.errors import DynslamError
+from dynslam_cli.motion.encode_base import Encoder
+
+
+def make_encoder(mcfg, threads: int = 0) -> Encoder:
+    """The encoder named by ``motion.encoder``; ``threads``: onnxruntime intra-op threads (run.threads; 0 = its
+    default)."""
+    name = mcfg.encoder
+    if name == "effnet-lite0":
+        from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
+
+        return EffNetLite0Encoder.from_config(mcfg, threads)
+    if name in ("onnx", "clip", "dino", "blip"):
+        from dynslam_cli.motion.encode_onnx import OnnxEncoder
+
+        return OnnxEncoder.from_config(mcfg, threads)
+    if name == "color-hist":
+        from dynslam_cli.motion.encode_hist import ColorHistEncoder
+
+        return ColorHistEncoder()
+    raise DynslamError(f"unknown motion.encoder '{name}'; valid: effnet-lite0, onnx, clip, dino, blip, color-hist")
