@@ -183,3 +183,17 @@ def test_not_initialised_starts_where_the_caller_put_the_camera():
     out = be.track(2, *FRAMES[2])
     assert not out.lost and out.reason == "first"
     assert np.linalg.norm(out.pose_c2w[:3, 3] - _camera(2)[:3, 3]) < 1e-3  # constant velocity from frames 0, 1
+
+
+def test_retrack_on_the_keypoints_still_static():
+    be = Backend(INTR, CFG)
+    assert be.retrack(np.ones((H, W), bool)) is None  # nothing tracked yet
+    _run(be, FRAMES[:3])
+    assert be.retrack(np.ones((H, W), bool)) is None  # no keypoint dropped: the pose stands
+    static = np.ones((H, W), bool)
+    static[:, W // 3: 2 * W // 3] = False  # the check found a mover in the middle third
+    pose = be.retrack(static)
+    assert pose is not None and np.linalg.norm(pose[:3, 3] - _camera(2)[:3, 3]) < 0.01
+    assert np.allclose(be.trajectory()[-1], pose) and np.allclose(be.last_pose, pose)
+    assert be.retrack(np.zeros((H, W), bool)) is None  # nothing static left: the pose stands
+    assert np.allclose(be.trajectory()[-1], pose)

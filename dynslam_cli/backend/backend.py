@@ -66,6 +66,7 @@ class Backend:
         self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
         self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
         self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
+        self._last: Optional[tuple] = None  # (index, guess, keypoints, local-map ids) of the last tracked frame
 
     # -- public ------------------------------------------------------------------------------------
     def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
@@ -76,6 +77,7 @@ class Backend:
         :meth:`commit`."""
         t0 = time.perf_counter()
         self._pending = None
+        self._last = None
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
         if len(self.kf_frame) == 0:
@@ -108,6 +110,7 @@ class Backend:
                                  ba_ms=(time.perf_counter() - t1) * 1000)
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
+        self._last = (int(index), guess, kp, ids)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
         n_obs = self.lm.n_obs()
@@ -128,6 +131,31 @@ class Backend:
                 inserted, ba_ms, pose = self.commit()
                 out.pose_c2w, out.ba_ms = pose, ba_ms
         return out
+
+    def retrack(self, static_mask: np.ndarray) -> Optional[np.ndarray]:
+        """Track the last frame again from the same prediction on the keypoints that ``static_mask``
+        (H×W bool) still calls static: the motion check after tracking found more movers, whose
+        keypoints may have pulled the pose.  Its pose (and a due keyframe's) is replaced; returns
+        it, or None where nothing changes (no keypoint dropped, the first frame, a lost frame, or
+        too few static matches left: the first pose stands)."""
+        if self._last is None:
+            return None
+        index, guess, kp, ids = self._last
+        keep = np.asarray(static_mask, bool)[pixel_index(kp.uv, *static_mask.shape)]
+        if keep.all():
+            return None
+        kp = kp.subset(keep)
+        tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
+                         lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.SEARCH_PX,
+                         self.cfg.huber_px, self.cfg.min_matches, seed=index)
+        if tr.lost:
+            return None
+        ref = int(self.frame_ref[-1])
+        self.frame_rel[-1] = tr.pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ tr.pose
+        self.last_pose = tr.pose.copy()
+        if self._pending is not None and self._pending[0] == index:
+            self._pending = (index, tr.pose.copy(), kp, tr.lm, tr.kp)
+        return tr.pose.copy()
 
     def commit(self, static_mask: Optional[np.ndarray] = None, instance_ids: Optional[np.ndarray] = None
                ) -> tuple[bool, float, Optional[np.ndarray]]:

@@ -381,8 +381,13 @@ class SLAM:
         cur = self._cur
         if cur is None or cur.idx != self.n_frames - 1 or cur.idx == 0 or self._undo is None:
             raise DynslamError("SLAM.retrack() must follow track() of the same frame (not the first)")
-        if self.backend is not None:  # the backend's robust pose stands; the corrected mask reaches map()
-            return TrackResult(self.poses[-1].copy(), float("nan"), 0, False, 0.0, "backend pose kept")
+        if self.backend is not None:  # the backend re-tracks on the keypoints still static; the mask reaches map()
+            t0 = time.perf_counter()
+            pose = None if mask is None else self.backend.retrack(np.asarray(mask, bool))
+            if pose is not None:
+                self.poses[-1] = orthonormalize(pose)
+            return TrackResult(self.poses[-1].copy(), float("nan"), 0, False, (time.perf_counter() - t0) * 1000,
+                               "backend re-tracked" if pose is not None else "backend pose kept")
         for lst in (self.poses, self.timestamps, self.kf_of, self.rel):
             lst.pop()
         self._prev_depth = self._undo[0]
