@@ -144,3 +144,18 @@ def test_second_demo_replaces_its_own_folder(demo, tmp_path):
     out = tmp_path / "synth" / "walker" / "dynamic"
     assert json.loads((out / "demo_report.json").read_text())["out_dir"] == str(out)
     assert f"dynslam view {out}" in res.stdout
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--scene", "nope"], "error: unknown synthetic preset 'nope'"),
+    (["--preset", "nope"], "error: unknown preset 'nope'"),
+])
+def test_cli_scene_and_preset_errors(tmp_path, args, msg):
+    from typer.testing import CliRunner
+
+    from dynslam_cli.cli import app
+
+    r = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "run"), "--data-root", str(tmp_path / "data"),
+                                 "-q"] + args)
+    assert r.exit_code == 2 and r.output.strip().splitlines()[-1].startswith(msg), r.output
+    assert not (tmp_path / "run").exists()
