@@ -1,8 +1,8 @@
 """A tiny analytic RGB-D scene (the inside of a textured box) for tests and quick checks.
 
 ``render(pose_c2w, intr)`` ray-casts the box exactly: depth is the z distance in the camera frame,
-colour a per-wall checkerboard.  ``write_sequence`` writes frames as a synthetic scene folder
-(TUM layout + synth.json) that ``open_sequence`` reads.
+colour a per-wall checkerboard.  ``ToyFrame`` is one such frame for SLAM; ``write_sequence`` writes
+frames as a synthetic scene folder (TUM layout + synth.json) that ``open_sequence`` reads.
 """
 
 from __future__ import annotations
@@ -53,6 +53,39 @@ def render(pose_c2w: np.ndarray, intr, box: np.ndarray = BOX):
     col = col * (0.8 + 0.2 * np.cos(p[:, :1] * 2.1 + p[:, 1:2] * 1.3))
     depth = (t).astype(np.float32).reshape(h, w)  # t along a z=1 camera direction = camera depth
     return col.clip(0, 255).astype(np.uint8).reshape(h, w, 3), depth
+
+
+class ToyFrame:
+    """Frame ``i`` of the toy scene seen from ``pose`` (the reader's ``Frame`` fields SLAM uses);
+    ``with_gt`` False leaves out the ground-truth pose."""
+
+    def __init__(self, i: int, pose: np.ndarray, intr, with_gt: bool = True):
+        self.index, self.timestamp = i, float(i)
+        self.rgb, self.depth = render(pose, intr)
+        self.pose_c2w = pose if with_gt else None
+
+
+def first_frame_state(cfg, intr) -> dict:
+    """``state_dict()`` of a SLAM that processed the toy scene's first frame (identity pose): a
+    fitted map for tests to load."""
+    import torch
+
+    from dynslam_cli.slam.system import SLAM
+
+    slam = SLAM(cfg, intr, torch.device("cpu"))
+    slam.process(ToyFrame(0, np.eye(4), intr))
+    return slam.state_dict()
+
+
+def load_slam(cfg, intr, state: dict):
+    """A CPU SLAM resumed from ``state``."""
+    import torch
+
+    from dynslam_cli.slam.system import SLAM
+
+    slam = SLAM(cfg, intr, torch.device("cpu"))
+    slam.load_state_dict(state)
+    return slam
 
 
 def trajectory(n: int, step: float = 0.01, rot_step: float = 0.004) -> np.ndarray:
