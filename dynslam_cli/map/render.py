@@ -2,9 +2,8 @@
 
 Depth-guided sampling: rays with a depth measurement ``d`` get ``samples_free`` stratified samples
 in ``[near, d - surface_range]`` and ``samples_surface`` stratified samples in
-``d ± surface_range``; rays without depth get ``samples_missing`` stratified samples in
-``[near, far]`` (the same count per ray for both, padded so the tensors stay rectangular: the
-ray-without-depth layout uses the first ``samples_free + samples_surface`` slots).
+``d ± surface_range``; rays without depth get as many (``samples_free + samples_surface``)
+stratified samples in ``[near, far]``, so the tensors stay rectangular.
 
 Weights exactly as Co-SLAM computes them: ``w = sigmoid(s / tr) * sigmoid(-s / tr)`` where ``s`` is
 the decoder's raw SDF, which is in truncation units (Co-SLAM's ``raw2outputs`` passes ``raw[..., 3]``
