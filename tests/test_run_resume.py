@@ -72,9 +72,9 @@ def test_checkpoint_of_an_older_version_is_refused(clip, partial):  # noqa: F811
 
 
 def test_resume_after_a_code_change_is_refused(clip, partial, monkeypatch):  # noqa: F811
-    from dynslam_cli.run import runner
+    from dynslam_cli.run import checkpoint
 
-    monkeypatch.setattr(runner, "code_version", lambda: "9.9.9+git.abc")
+    monkeypatch.setattr(checkpoint, "code_version", lambda: "9.9.9+git.abc")
     before = snapshot(partial)
     res = _run(["run", "--seq", str(clip), "--out", str(partial), "--resume"] + ARGS)
     one_line_error(res, "code version differs (old ", "new 9.9.9+git.abc)")
