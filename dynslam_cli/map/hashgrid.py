@@ -4,7 +4,7 @@ Two implementations with identical semantics:
 
 * ``torch``: plain PyTorch (autograd does the backward).  This is the reference and the CUDA path.
 * ``numba``: a :class:`torch.autograd.Function` whose forward and backward are parallel numba
-  kernels (``dynslam_cli.map._hashgrid_numba``); the CPU fast path.
+  kernels (``dynslam_cli.map._hashgrid_kernels``, called through ``_hashgrid_numba``); the CPU fast path.
 
 ``impl="auto"`` picks per call from the input: numba for float32 CPU tensors, torch otherwise
 (CUDA tensors, float64 for ``gradcheck``, or numba not importable).
