@@ -27,7 +27,6 @@ the trajectory by timestamp.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -40,32 +39,13 @@ import numpy as np
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.eval import runs
 from dynslam_cli.utils.io import atomic_path
+from dynslam_cli.view import inputs
+from dynslam_cli.view.inputs import DEPTH_UNITS, RunView
 
 MAX_IMAGE_FRAMES = 100  # default --every: at most this many frames with images per run
-DEPTH_UNITS = 5000.0  # uint16 depth units per metre (input depth re-quantised; renders/ as written)
-MATCH_S = 1e-3  # max timestamp difference (s) between the trajectory and masks/renders/updates
 JPEG_QUALITY = 85
 FRUSTUM_M = 0.1  # distance of the drawn image plane from the camera centre (m)
 INSTALL_HINT = 'pip install "dynslam_cli[view]"'
-
-
-@dataclass
-class RunView:
-    """What one run contributed to the recording."""
-
-    run_dir: Path
-    prefix: str
-    frames: int = 0  # trajectory poses (frusta) on the timeline
-    every: int = 1
-    image_frames: int = 0  # frames with rgb/depth logged
-    groundtruth_poses: int = 0
-    alignment: str = ""
-    ate_rmse_m: Optional[float] = None
-    masks: int = 0
-    renders: int = 0
-    updates: int = 0
-    mesh_vertices: int = 0
-    notes: list = field(default_factory=list)  # what could not be shown, and why
 
 
 @dataclass
@@ -126,143 +106,6 @@ def _check_args(run_dirs: Sequence[Path], out: Path, every: Optional[int]) -> li
 
 # --------------------------------------------------------------------------------------------
 # reading one run
-def _frame_of(stamps, t_est: np.ndarray) -> dict:
-    """``{position in stamps: trajectory frame}`` for stamps within MATCH_S of a trajectory time."""
-    from dynslam_cli.data.tum import associate
-
-    return dict(associate(np.asarray(stamps, dtype=np.float64), t_est, MATCH_S))
-
-
-def _stamped_files(folder: Path, suffix: str) -> tuple[list[float], list[Path]]:
-    """``(timestamps, paths)`` of ``folder/<ts><suffix>`` files whose ``<ts>`` is a number."""
-    stamps, paths = [], []
-    if folder.is_dir():
-        for p in sorted(folder.glob(f"*{suffix}")):
-            try:
-                stamps.append(float(p.name[: -len(suffix)]))
-            except ValueError:
-                continue
-            paths.append(p)
-    return stamps, paths
-
-
-def _read_image(path: Path, what: str, size: tuple[int, int], uint16: bool = False) -> np.ndarray:
-    """A single-channel PNG at the camera size ``(w, h)`` (nearest-neighbour resize when smaller)."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if uint16 else cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise DynslamError(f"corrupt {what} {path}: not a readable image")
-    if uint16 and (img.dtype != np.uint16 or img.ndim != 2):
-        raise DynslamError(f"{what} {path} must be single-channel uint16 (m × {DEPTH_UNITS:g}), got {img.dtype} "
-                           f"with {1 if img.ndim == 2 else img.shape[2]} channels")
-    if (img.shape[1], img.shape[0]) != size:
-        img = cv2.resize(img, size, interpolation=cv2.INTER_NEAREST)
-    return img
-
-
-def _data_config(run_dir: Path, meta: dict, view: RunView):
-    """The run's config (config.yaml) for reading its sequence; the dataset's when it has none."""
-    from dynslam_cli.config import config_from_file, load_config
-
-    cpath = run_dir / "config.yaml"
-    if cpath.is_file():
-        try:
-            return config_from_file(cpath)
-        except DynslamError as exc:
-            view.notes.append(f"config.yaml not usable ({exc}); input frames read with the dataset's settings")
-    ds = runs.dataset_of(run_dir, meta)
-    name = str(runs.sequence_info(run_dir, meta).get("name") or "") or None
-    return load_config(ds if ds in ("tum", "bonn", "synth") else None, name)
-
-
-def _open_sequence(run_dir: Path, meta: dict, t_est: np.ndarray, view: RunView):
-    """The run's input sequence (all frames) and ``{trajectory frame: sequence index}``."""
-    from dynslam_cli.data.tum import read_folder
-
-    sp = runs.sequence_path(run_dir, meta)
-    if sp is None or not sp.is_dir():
-        view.notes.append("input images not shown: " + ("run.json has no sequence.path" if sp is None
-                                                        else f"sequence folder {sp} not found"))
-        return None, {}
-    cfg = _data_config(run_dir, meta, view)
-    cfg.data.start, cfg.data.frames, cfg.data.stride = 0, 0, 1
-    info = runs.sequence_info(run_dir, meta)
-    seq = read_folder(sp, cfg, dataset=runs.dataset_of(run_dir, meta), name=str(info.get("name") or sp.name),
-                      spec=str(sp))
-    to_seq = {f: j for j, f in _frame_of(seq.timestamps, t_est).items()}
-    if not to_seq:
-        view.notes.append(f"input images not shown: no frame of {sp} has a timestamp of traj_est.txt")
-    return seq, to_seq
-
-
-def _aligned_groundtruth(run_dir: Path, meta: dict, t_est: np.ndarray, view: RunView):
-    """Ground-truth positions over the run's time span in the estimate's frame, and the ATE result."""
-    from dynslam_cli.eval.ate import compute_ate, read_tum
-
-    gt_file = runs.groundtruth_path(run_dir, meta)
-    if gt_file is None:
-        view.notes.append("ground truth not shown: run.json has no sequence.groundtruth")
-        return None, None
-    cfg = runs.eval_config_for(run_dir)
-    try:
-        res = compute_ate(run_dir / "traj_est.txt", gt_file, cfg.align, cfg.max_time_diff)
-        gt_t, gt_xyz, _ = read_tum(gt_file, "ground-truth")
-    except DynslamError as exc:
-        view.notes.append(f"ground truth not shown: {exc}")
-        return None, None
-    rot, trans = np.asarray(res.rotation, dtype=np.float64), np.asarray(res.translation, dtype=np.float64)
-    keep = (gt_t >= t_est[0] - cfg.max_time_diff) & (gt_t <= t_est[-1] + cfg.max_time_diff)
-    # compute_ate maps the estimate onto the ground truth: g = s R e + t, so e = R^T (g - t) / s
-    return (gt_xyz[keep] - trans) @ rot / res.scale, res
-
-
-def _read_updates(path: Path) -> list[dict]:
-    out = []
-    for no, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            d = json.loads(line)
-        except json.JSONDecodeError:
-            d = None
-        if not isinstance(d, dict):
-            raise DynslamError(f"corrupt classifier_updates.jsonl {path} line {no}: expected a JSON object")
-        out.append(d)
-    return out
-
-
-def _update_frames(updates: list[dict], t_est: np.ndarray) -> list[Optional[int]]:
-    """The trajectory frame of each update: by its ``timestamp``, else its ``frame`` index."""
-    stamps, which = [], []
-    for k, u in enumerate(updates):
-        try:
-            stamps.append(float(u.get("timestamp")))
-            which.append(k)
-        except (TypeError, ValueError):
-            continue
-    frames: list[Optional[int]] = [None] * len(updates)
-    for pos, f in _frame_of(stamps, t_est).items():
-        frames[which[pos]] = f
-    for k, u in enumerate(updates):
-        f = u.get("frame")
-        if frames[k] is None and isinstance(f, int) and 0 <= f < len(t_est):
-            frames[k] = f
-    return frames
-
-
-def _load_mesh(path: Path):
-    import trimesh
-
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many kinds on a bad file
-        raise DynslamError(f"corrupt mesh {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-    return mesh
-
-
-# --------------------------------------------------------------------------------------------
-# logging one run
 def _set_time(rec, frame: int, t: float) -> None:
     rec.set_time("frame", sequence=int(frame))
     rec.set_time("timestamp", timestamp=float(t))
@@ -289,12 +132,12 @@ def log_run(rr, rec, run_dir: Path, prefix: str, every: Optional[int]) -> RunVie
     # trajectories
     rec.log(f"{P}/trajectory/estimate", rr.LineStrips3D([T_est[:, :3, 3]], colors=[[40, 120, 255]], radii=[0.004]),
             static=True)
-    gt_xyz, ate = _aligned_groundtruth(run_dir, meta, t_est, view)
+    gt_xyz, ate = inputs.aligned_groundtruth(run_dir, meta, t_est, view)
     if gt_xyz is not None and len(gt_xyz):
         rec.log(f"{P}/trajectory/groundtruth", rr.LineStrips3D([gt_xyz], colors=[[40, 200, 80]], radii=[0.004]),
                 static=True)
         view.groundtruth_poses, view.alignment, view.ate_rmse_m = len(gt_xyz), ate.alignment, ate.rmse_m
-        for pos, f in _frame_of(ate.timestamps, t_est).items():
+        for pos, f in inputs.frame_of(ate.timestamps, t_est).items():
             _set_time(rec, f, t_est[f])
             rec.log(f"{P}/ate/error", rr.Scalars(float(ate.errors[pos])))
 
@@ -309,14 +152,14 @@ def log_run(rr, rec, run_dir: Path, prefix: str, every: Optional[int]) -> RunVie
         rec.log(f"{P}/camera", rr.Transform3D(translation=T_est[i, :3, 3], mat3x3=T_est[i, :3, :3]))
 
     # images every N-th frame
-    seq, to_seq = _open_sequence(run_dir, meta, t_est, view)
+    seq, to_seq = inputs.open_run_sequence(run_dir, meta, t_est, view)
     if seq is not None and (seq.intrinsics.width, seq.intrinsics.height) != (width, height):
         view.notes.append(f"input images are {seq.intrinsics.width}x{seq.intrinsics.height}, the run's camera "
                           f"{width}x{height}: images drawn at their own size")
-    m_t, m_paths = _stamped_files(run_dir / "masks", ".png")
-    r_t, r_paths = _stamped_files(run_dir / "renders", "_depth.png")
-    mask_at = {f: m_paths[k] for k, f in _frame_of(m_t, t_est).items()}
-    render_at = {f: r_paths[k] for k, f in _frame_of(r_t, t_est).items()}
+    m_t, m_paths = inputs.stamped_files(run_dir / "masks", ".png")
+    r_t, r_paths = inputs.stamped_files(run_dir / "renders", "_depth.png")
+    mask_at = {f: m_paths[k] for k, f in inputs.frame_of(m_t, t_est).items()}
+    render_at = {f: r_paths[k] for k, f in inputs.frame_of(r_t, t_est).items()}
     for i in range(0, n, view.every):
         _set_time(rec, i, t_est[i])
         j = to_seq.get(i)
@@ -329,19 +172,19 @@ def log_run(rr, rec, run_dir: Path, prefix: str, every: Optional[int]) -> RunVie
             rec.log(f"{P}/camera/depth", rr.DepthImage(depth, meter=DEPTH_UNITS))
             view.image_frames += 1
         if i in mask_at:
-            mask = _read_image(mask_at[i], "motion mask", (width, height))
+            mask = inputs.read_image(mask_at[i], "motion mask", (width, height))
             rec.log(f"{P}/camera/mask", rr.SegmentationImage((mask > 127).astype(np.uint8)))
             view.masks += 1
         if i in render_at:
-            rendered = _read_image(render_at[i], "rendered depth", (width, height), uint16=True)
+            rendered = inputs.read_image(render_at[i], "rendered depth", (width, height), uint16=True)
             rec.log(f"{P}/camera/render_depth", rr.DepthImage(rendered, meter=DEPTH_UNITS))
             view.renders += 1
 
     # classifier updates: the count so far (and the loss after each update) over time
     upath = run_dir / "classifier_updates.jsonl"
     if upath.is_file():
-        updates = _read_updates(upath)
-        placed = [(f, u) for f, u in zip(_update_frames(updates, t_est), updates, strict=True) if f is not None]
+        updates = inputs.read_updates(upath)
+        placed = [(f, u) for f, u in zip(inputs.update_frames(updates, t_est), updates, strict=True) if f is not None]
         for count, (f, u) in enumerate(sorted(placed, key=lambda fu: fu[0]), 1):
             _set_time(rec, f, t_est[f])
             rec.log(f"{P}/classifier/updates", rr.Scalars(float(count)))
@@ -354,7 +197,7 @@ def log_run(rr, rec, run_dir: Path, prefix: str, every: Optional[int]) -> RunVie
     # the final mesh
     mpath = run_dir / "mesh.ply"
     if mpath.is_file():
-        mesh = _load_mesh(mpath)
+        mesh = inputs.load_mesh(mpath)
         if len(mesh.faces) == 0:
             view.notes.append(f"mesh {mpath} has no faces")
         else:
