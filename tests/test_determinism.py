@@ -20,19 +20,12 @@ from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
 from dynslam_cli.utils.threads import deterministic_torch
+from tiny_runs import check_from_frame_2, tiny_sets
 
-SMALL = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
-         "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=15",
-         "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
-         "--set", "mapping.n_rays=4096", "--set", "tracking.ignore_border=2", "--set", "run.threads=2",
-         "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2",
-         "--set", "motion.encoder=color-hist", "--set", "motion.check_width=48"]
-
-
+SMALL = tiny_sets(first_iters=15, ba_rays=4096, threads=2)
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
-    """The inconsistency check from frame 2 on (its warm-up is 5 frames): the clip is short."""
-    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+    check_from_frame_2(monkeypatch)
 
 
 @pytest.fixture(scope="module")

@@ -10,19 +10,12 @@ from typer.testing import CliRunner
 from dynslam_cli.cli import app
 from dynslam_cli.run.dynamic import DynamicLoop
 from dynslam_cli.slam.keyframes import Keyframe, subsample_depth
+from tiny_runs import check_from_frame_2, tiny_sets
 
-TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
-        "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=20",
-        "--set", "tracking.iters=3", "--set", "tracking.n_rays=128", "--set", "mapping.iters=3",
-        "--set", "mapping.n_rays=256", "--set", "tracking.ignore_border=2", "--set", "run.threads=1",
-        "--set", "run.mesh_resolution=0.1", "--set", "mapping.every=2", "--set", "mapping.keyframe_every=2",
-        "--set", "motion.encoder=color-hist", "--set", "motion.check_width=48"]
-
-
+TINY = tiny_sets()
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
-    """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
-    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+    check_from_frame_2(monkeypatch)
 
 
 @pytest.fixture(scope="module")
