@@ -116,7 +116,7 @@ def test_demo_settings_are_valid_config():
     cfg, overrides = demo_config(sets=["synth.frames=5"])
     assert overrides[:len(DEMO_SETS)] == DEMO_SETS and cfg.synth.frames == 5
     assert cfg.run.threads == 1  # one thread unless --threads (onnxruntime too)
-    assert (cfg.synth.width, cfg.synth.height, cfg.run.mode, cfg.run.save_masks) == (320, 240, "dynamic", True)
+    assert (cfg.synth.width, cfg.synth.height, cfg.run.mode, cfg.run.save_masks) == (640, 480, "dynamic", True)
     assert demo_config(threads=2)[0].run.threads == 2
 
 

@@ -19,15 +19,15 @@ from typing import Callable, Optional, Sequence
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.utils.io import write_json_atomic, write_text_atomic
 
-# The demo's settings (before --threads and the user's --set).  100 frames at 320x240: the walker
-# moves in 82 of them and the classifier needs most of them to learn it (mask IoU 0.51 over 60
-# frames, 0.60 over 80, 0.68 over 100); the camera moves enough that standing still scores 34 cm.
-# One thread: on the 2-core machine the old two-thread demo spent 534 CPU-s beside other work
-# (numba's workqueue threads contend), one thread 170 CPU-s for render + run + eval from a fresh
-# cache, so about 3 minutes on an idle core.  150 first-frame iterations instead of 300: ATE 0.95 vs
-# 0.64 cm, IoU 0.683 vs 0.686, mesh accuracy 2.8 vs 3.4 cm, about 20 CPU-s less.
-DEMO_SETS = ["synth.width=320", "synth.height=240", "synth.frames=100", "mapping.first_iters=150",
-             "tracking.ignore_border=10", "run.threads=1"]
+# The demo's settings (before --threads and the user's --set).  100 frames at the sensor's 640x480:
+# the walker moves in 82 of them and the classifier needs most of them to learn it (mask IoU 0.51
+# over 60 frames, 0.60 over 80, 0.68 over 100, at 320x240); the camera moves enough that standing
+# still scores 34 cm.  640x480 rather than 320x240 since the keyframe backend tracks: its ORB
+# keypoints are too few and too coarse at half size (ATE 3.6 against 0.75 cm, IoU 0.69 against
+# 0.75, in the same wall time: 110 s, beside one other run).  One thread: on the 2-core machine
+# the old two-thread demo spent 534 CPU-s beside other work, one thread 170 CPU-s.  150
+# first-frame iterations instead of 300: the same ATE and IoU within noise, about 20 CPU-s less.
+DEMO_SETS = ["synth.frames=100", "mapping.first_iters=150", "run.threads=1"]
 
 
 @dataclass
