@@ -44,7 +44,7 @@ MODES = {
     "static": ["run.mode=static"],
     "dynamic-noreplay": ["run.mode=dynamic", "motion.replay=false"],
     "dynamic-yolo": ["run.mode=dynamic", "motion.segmenter=yolo-seg", f"motion.segmenter_model={YOLO}"],
-    # configs/yolo-person.yaml: people dynamic from the start, keypoints' local map, BA map-only
+    # configs/presets/yolo-person.yaml: the yolo-seg segmenter, people dynamic from the first frame
     "dynamic-yolo-person": ["run.mode=dynamic", f"motion.segmenter_model={YOLO}"] + overlay_sets(PERSON),
 }
 
