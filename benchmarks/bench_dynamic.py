@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 
 YOLO = REPO.parent / "shared" / "models" / "yolov8n-seg_deq_fp32.onnx"
-PERSON = REPO / "configs" / "yolo-person.yaml"
+PERSON = REPO / "configs" / "presets" / "yolo-person.yaml"
 
 
 def overlay_sets(path: Path) -> list[str]:
