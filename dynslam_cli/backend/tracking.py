@@ -14,26 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from dynslam_cli.backend.features import SCALE, Keypoints, hamming, project
+from dynslam_cli.data.types import Intrinsics
 
 CHI2_STEREO = 7.815  # 95 % gate of a 3-dof residual (u, v, u_R)
 CHI2_MONO = 5.991  # 2 dof
 
 
-@dataclass
-class Camera:
-    """Pinhole intrinsics and the virtual stereo focal-baseline product ``bf`` (px·m)."""
+@dataclass(frozen=True)
+class Camera(Intrinsics):
+    """The camera's pinhole intrinsics and the virtual stereo focal-baseline product ``bf`` (px·m)."""
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
     bf: float
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
