@@ -20,9 +20,11 @@ from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
 from dynslam_cli.utils.threads import deterministic_torch
-from tiny_runs import check_from_frame_2, tiny_sets
+from tiny_runs import check_from_frame_2, render_walker, tiny_sets
 
 SMALL = tiny_sets(first_iters=15, ba_rays=4096, threads=2)
+
+
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
     check_from_frame_2(monkeypatch)
@@ -30,12 +32,7 @@ def early_check(monkeypatch):
 
 @pytest.fixture(scope="module")
 def walker(tmp_path_factory):
-    from dynslam_cli.synth.config import SynthConfig
-    from dynslam_cli.synth.render import render_preset
-
-    out = tmp_path_factory.mktemp("synth") / "walker"
-    render_preset("walker", out, SynthConfig(width=80, height=60, frames=7, seed=3), progress=False)
-    return out
+    return render_walker(tmp_path_factory, 80, 60, 7)
 
 
 def _outputs(run) -> dict:

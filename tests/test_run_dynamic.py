@@ -10,9 +10,11 @@ from typer.testing import CliRunner
 from dynslam_cli.cli import app
 from dynslam_cli.run.dynamic import DynamicLoop
 from dynslam_cli.slam.keyframes import Keyframe, subsample_depth
-from tiny_runs import check_from_frame_2, tiny_sets
+from tiny_runs import check_from_frame_2, render_walker, tiny_sets
 
 TINY = tiny_sets()
+
+
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
     check_from_frame_2(monkeypatch)
@@ -20,12 +22,7 @@ def early_check(monkeypatch):
 
 @pytest.fixture(scope="module")
 def walker(tmp_path_factory):
-    from dynslam_cli.synth.config import SynthConfig
-    from dynslam_cli.synth.render import render_preset
-
-    out = tmp_path_factory.mktemp("synth") / "walker"
-    render_preset("walker", out, SynthConfig(width=96, height=72, frames=10, seed=3), progress=False)
-    return out
+    return render_walker(tmp_path_factory, 96, 72, 10)
 
 
 def _traj(path):

@@ -1,5 +1,6 @@
 """Settings that make a dynamic-mode run of a few tiny synthetic frames take seconds (shared by
-the tests that run one end to end), and starting the motion check early for such short clips."""
+the tests that run one end to end), the tiny walker scene they run on, and starting the motion
+check early for such short clips."""
 
 
 def tiny_sets(first_iters: int = 20, ba_rays: int = 256, threads: int = 1) -> list[str]:
@@ -15,3 +16,13 @@ def tiny_sets(first_iters: int = 20, ba_rays: int = 256, threads: int = 1) -> li
 def check_from_frame_2(monkeypatch) -> None:
     """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
     monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+
+
+def render_walker(tmp_path_factory, width: int, height: int, frames: int):
+    """A tiny synthetic walker scene (scene seed 3) in a fresh temporary folder."""
+    from dynslam_cli.synth.config import SynthConfig
+    from dynslam_cli.synth.render import render_preset
+
+    out = tmp_path_factory.mktemp("synth") / "walker"
+    render_preset("walker", out, SynthConfig(width=width, height=height, frames=frames, seed=3), progress=False)
+    return out
