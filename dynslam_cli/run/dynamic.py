@@ -259,8 +259,9 @@ class DynamicLoop:
             kf.near_ids = self.near_ids(inst.ids, kf.pixels)
             self.mm.register_keyframe(kf.frame_id, inst)
             self.carve(frame.depth, inst.static_mask)
-        if self.slam.backend_keyframe:  # its landmarks carry these instance ids (forgotten if they move)
-            self.mm.register_keyframe(self.slam.n_frames - 1, inst)
+        fid = self.slam.n_frames - 1
+        if self.slam.backend_keyframe and fid not in self.mm.keyframes:  # its landmarks carry these ids
+            self.mm.register_keyframe(fid, inst)
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:
