@@ -28,8 +28,15 @@ def _traj(path):
     return np.array([[float(v) for v in r] for r in rows])
 
 
+def _proc_status_mb(key: str) -> float:
+    """A memory line of /proc/self/status (VmRSS: now, VmHWM: peak so far; kB there) in MiB."""
+    with open("/proc/self/status") as f:
+        return next(int(ln.split()[1]) for ln in f if ln.startswith(key + ":")) / 1024.0
+
+
 def test_run_writes_the_run_folder(clip, tmp_path):
     out = tmp_path / "run"
+    rss_before = _proc_status_mb("VmRSS")  # the run is in this process: its peak is at least this
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q"] + TINY)
     assert res.exit_code == 0, res.output
     for name in ("config.yaml", "run.json", "traj_est.txt", "mesh.ply", "timing.json"):
@@ -48,6 +55,7 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
     # calls: frames each part ran on (tracking every frame; mapping on frame 0 and every keyframe_every-th)
     assert timing["calls"]["track"] == 6 and timing["calls"]["frame"] == 6 and 1 <= timing["calls"]["map"] < 6
+    assert isinstance(timing["peak_rss_mb"], float) and 0 < rss_before <= timing["peak_rss_mb"] <= _proc_status_mb("VmHWM")
     assert (out / "mesh.ply").read_bytes()[:3] == b"ply" and b"binary" in (out / "mesh.ply").read_bytes()[:200]
     assert not (out / "checkpoint.pt").exists()
 

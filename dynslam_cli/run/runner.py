@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import platform
 import random
+import resource
 import sys
 import traceback
 from dataclasses import dataclass, field
@@ -114,6 +115,12 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
         t = T[:3, 3]
         lines.append(f"{s} {t[0]:.7f} {t[1]:.7f} {t[2]:.7f} {qq[0]:.7f} {qq[1]:.7f} {qq[2]:.7f} {qq[3]:.7f}")
     return write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def peak_rss_mb() -> float:
+    """The process's peak resident memory so far (MiB; ru_maxrss is KiB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2.0 ** 20 if sys.platform == "darwin" else 1024.0)
 
 
 def _say(progress: bool, msg: str) -> None:
@@ -316,6 +323,7 @@ class _Run:
             "median_ms": {k: float(np.median(v)) if len(v) else 0.0 for k, v in self.timings.items()},
             "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in self.timings.items()},
             "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
+            "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
         }
         if loop is not None:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
