@@ -25,9 +25,9 @@ from dynslam_cli.utils.io import write_json_atomic, write_text_atomic
 # still scores 34 cm.  640x480 rather than 320x240 since the keyframe backend tracks: its ORB
 # keypoints are too few and too coarse at half size (ATE 3.6 against 0.75 cm, IoU 0.69 against
 # 0.75, in the same wall time: 110 s, beside one other run).  One thread: on the 2-core machine
-# the old two-thread demo spent 534 CPU-s beside other work, one thread 170 CPU-s.  150
-# first-frame iterations instead of 300: the same ATE and IoU within noise, about 20 CPU-s less.
-DEMO_SETS = ["synth.frames=100", "mapping.first_iters=150", "run.threads=1"]
+# the old two-thread demo spent 534 CPU-s beside other work, one thread 170 CPU-s.  The first frame
+# gets the default mapping.first_iters.
+DEMO_SETS = ["synth.frames=100", "run.threads=1"]
 
 
 @dataclass
