@@ -16,6 +16,12 @@ counted separately and shows in the RSS only.
 
 The rows are taken after each frame by wrapping the runner's per-frame step (``_Run._step``: the
 runner has no public per-frame hook); the run itself is unchanged.
+
+Measured (walker preset 640x480, 1000 frames, one thread, 2 busy cores): peak 1707 MB (mesh extraction
+included; timing.json's peak_rss_mb says the same), RSS 1412 MB after the last frame, +24 MB per 100
+frames over frames 500-1000: the neural-map keyframes (20 per 100 frames, 15360 rays each: +9.9 MB in
+their arrays, about as much again in the mapper's ray tensors), motion-module keyframe features
+(+1.6 MB) and backend landmarks (+0.3 MB).
 """
 
 from __future__ import annotations
