@@ -67,3 +67,42 @@ def test_state_dict_round_trip():
     other.load_state_dict(lm.state_dict())
     for k, v in lm.state_dict().items():
         assert np.array_equal(v, other.state_dict()[k]) and v.dtype == other.state_dict()[k].dtype, k
+
+
+def test_compact_drops_dead_rows_and_keeps_every_live_landmark():
+    lm, ids = _map_with(6)
+    lm.create(1, _kps(4, seed=5), np.ones((4, 3)), np.zeros(3), origin=[3, 4, 5, 6])
+    lm.observe(1, ids[[1, 2, 4]], _kps(3, seed=2))
+    lm.observe(2, np.array([2, 7, 9]), _kps(3, seed=6))
+    lm.count(np.arange(10), np.arange(0, 10, 2))
+    lm.set_moving(1, [4])  # landmark 7
+    dead = np.zeros(10, bool)
+    dead[[0, 3, 8]] = True
+    lm.kill(dead)
+    before = lm.state_dict()
+    live = np.flatnonzero(~dead)
+    obs_before = {(int(k), int(j)): i for i, (k, j) in enumerate(zip(before["obs_kf"], before["obs_lm"]))}
+    assert lm.compact() is None and len(lm) == 10  # 3 of 10 dead: under the threshold (and the minimum)
+    remap = lm.compact(force=True)
+    assert len(lm) == lm.n_alive == 7 and np.array_equal(remap[live], np.arange(7)) and (remap[dead] == -1).all()
+    for k in ("pos", "des", "octave", "dist", "first_kf", "origin", "moving", "visible", "found", "alive"):
+        assert np.array_equal(getattr(lm, k), before[k][live]), k
+    assert lm.moving.sum() == 1 and lm.moving[remap[7]]
+    assert len(lm.obs_kf) == len(before["obs_kf"])  # the dead had none left
+    for i, (k, j) in enumerate(zip(lm.obs_kf, lm.obs_lm)):  # each observation, now of the renumbered landmark
+        o = obs_before[(int(k), int(live[j]))]
+        for key in ("obs_uv", "obs_depth", "obs_octave"):
+            assert np.array_equal(getattr(lm, key)[i], before[key][o]), key
+    assert np.array_equal(lm.seen_by([2]), remap[[2, 9]])  # landmark 7 is moving
+    assert lm.compact(force=True) is None  # nothing dead left
+
+
+def test_compact_runs_by_itself_once_most_rows_are_dead(monkeypatch):
+    from dynslam_cli.backend import landmarks
+
+    monkeypatch.setattr(landmarks, "COMPACT_MIN_ROWS", 8)
+    lm, ids = _map_with(10)
+    lm.kill(np.arange(10) < 5)
+    assert lm.compact() is None  # half dead: not more than half
+    lm.kill(np.arange(10) < 6)
+    assert lm.compact() is not None and len(lm) == 4

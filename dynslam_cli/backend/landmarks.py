@@ -1,7 +1,9 @@
 """Landmarks: 3-D points in the world frame with an ORB descriptor, created from a keyframe's
 keypoints with depth on static pixels; which keyframes observed them (flat observation arrays);
 found/visible counts; culling (ORB-SLAM's rules).  Everything is numpy arrays indexed by landmark
-id (ids are never reused; culled landmarks keep their row with ``alive`` false)."""
+id.  Culled landmarks keep their row with ``alive`` false until :meth:`LandmarkMap.compact` drops
+the dead rows and renumbers the rest (in order); the owner of the map calls it when no landmark id
+is held outside the map (``Backend`` does at the start of each frame)."""
 
 from __future__ import annotations
 
@@ -11,6 +13,11 @@ from dynslam_cli.backend.features import SCALE, Keypoints
 
 _LM = ("pos", "des", "octave", "dist", "first_kf", "origin", "moving", "visible", "found", "alive")
 _OBS = ("obs_kf", "obs_lm", "obs_uv", "obs_depth", "obs_octave")
+# compact() drops the dead rows once they are more than this fraction of the rows (and the map has at
+# least COMPACT_MIN_ROWS): each compaction removes at least half the rows, so its cost is amortised O(1)
+# per culled landmark and the rows stay under twice the alive landmarks
+COMPACT_DEAD_FRACTION = 0.5
+COMPACT_MIN_ROWS = 1024
 
 
 class LandmarkMap:
@@ -133,6 +140,24 @@ class LandmarkMap:
     def kill(self, bad: np.ndarray) -> None:
         self.alive &= ~bad
         self._keep_obs(self.alive[self.obs_lm])
+
+    def compact(self, force: bool = False) -> np.ndarray | None:
+        """Drop the dead rows when they are over COMPACT_DEAD_FRACTION of at least COMPACT_MIN_ROWS
+        rows (any dead rows with ``force``): the alive landmarks keep their order and get the ids
+        0..n_alive-1, observations follow them.  Returns the old id → new id map (-1 for the dropped),
+        or None when nothing changed; every landmark id held elsewhere must be mapped through it."""
+        n, alive = len(self), self.n_alive
+        dead = n - alive
+        if dead == 0 or not (force or (n >= COMPACT_MIN_ROWS and dead > COMPACT_DEAD_FRACTION * n)):
+            return None
+        keep = self.alive.copy()
+        remap = np.full(n, -1, np.int64)
+        remap[keep] = np.arange(alive)
+        for k in _LM:
+            setattr(self, k, getattr(self, k)[keep])
+        self._keep_obs(keep[self.obs_lm])  # none of a dead landmark's (kill drops them): a no-op
+        self.obs_lm = remap[self.obs_lm]
+        return remap
 
     def _keep_obs(self, keep: np.ndarray) -> None:
         for k in _OBS:
