@@ -197,3 +197,38 @@ def test_retrack_on_the_keypoints_still_static():
     assert np.allclose(be.trajectory()[-1], pose) and np.allclose(be.last_pose, pose)
     assert be.retrack(np.zeros((H, W), bool)) is None  # nothing static left: the pose stands
     assert np.allclose(be.trajectory()[-1], pose)
+
+
+def test_tracks_the_same_with_the_landmarks_compacted_every_frame(monkeypatch):
+    from dynslam_cli.backend import landmarks
+
+    be = Backend(INTR, CFG)
+    monkeypatch.setattr(landmarks, "COMPACT_MIN_ROWS", 10 ** 9)  # never
+    ref = [o.pose_c2w for o in _run(be, FRAMES)]
+    never = len(be.lm)
+    monkeypatch.setattr(landmarks, "COMPACT_MIN_ROWS", 0)
+    monkeypatch.setattr(landmarks, "COMPACT_DEAD_FRACTION", 0.0)  # whenever a landmark died
+    be2 = Backend(INTR, CFG)
+    outs = _run(be2, FRAMES)
+    assert len(be2.lm) < never and be2.lm.alive.sum() == be.lm.alive.sum()  # culled rows went
+    for o, T in zip(outs, ref):
+        assert np.array_equal(o.pose_c2w, T)
+    assert np.array_equal(be2.trajectory(), be.trajectory())
+    for k in ("pos", "des", "origin", "first_kf", "visible", "found"):
+        assert np.array_equal(getattr(be2.lm, k)[be2.lm.alive], getattr(be.lm, k)[be.lm.alive]), k
+
+
+def test_frame_rows_append_and_survive_a_state_round_trip():
+    be = Backend(INTR, CFG)
+    rng = np.random.default_rng(0)
+    refs, rels = rng.integers(-1, 5, 150), rng.normal(size=(150, 4, 4))
+    for r, T in zip(refs[:100], rels[:100]):  # past the first capacity (64)
+        be._append_frame(int(r), T)
+    assert np.array_equal(be.frame_ref, refs[:100]) and np.array_equal(be.frame_rel, rels[:100])
+    be.frame_rel[-1] = np.eye(4)  # the last row can be replaced in place (retrack, commit)
+    other = Backend(INTR, CFG)
+    other.load_state_dict(be.state_dict())
+    for r, T in zip(refs[100:], rels[100:]):
+        other._append_frame(int(r), T)
+    assert np.array_equal(other.frame_ref, refs) and np.array_equal(other.frame_rel[100:], rels[100:])
+    assert np.array_equal(other.frame_rel[99], np.eye(4)) and np.array_equal(other.frame_rel[:99], rels[:99])

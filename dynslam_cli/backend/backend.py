@@ -65,6 +65,8 @@ class Backend:
         self.lost_run = 0
         self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
         self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
+        # frame_ref/frame_rel are the filled rows of these (capacity doubles: appending is amortised O(1))
+        self._ref_buf, self._rel_buf = self.frame_ref, self.frame_rel
         self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
         self._last: Optional[tuple] = None  # (index, guess, keypoints, local-map ids) of the last tracked frame
 
@@ -78,6 +80,7 @@ class Backend:
         t0 = time.perf_counter()
         self._pending = None
         self._last = None
+        self.lm.compact()  # no landmark id is held outside the map now
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
         if len(self.kf_frame) == 0:
@@ -238,8 +241,8 @@ class Backend:
         self.last_kf_index = int(d["last_kf_index"])
         self.lost_run = int(d["lost_run"])
         self.first_pose = np.array(d["first_pose"], np.float64)
-        self.frame_ref = np.array(d["frame_ref"], np.int64)
-        self.frame_rel = np.array(d["frame_rel"], np.float64).reshape(-1, 4, 4)
+        self.frame_ref = self._ref_buf = np.array(d["frame_ref"], np.int64)
+        self.frame_rel = self._rel_buf = np.array(d["frame_rel"], np.float64).reshape(-1, 4, 4)
         last, prev = np.array(d["last_pose"], np.float64), np.array(d["prev_pose"], np.float64)
         self.last_pose = None if np.isnan(last).any() else last
         self.prev_pose = None if np.isnan(prev).any() else prev
@@ -248,10 +251,20 @@ class Backend:
     def _out(self, pose, inliers, lost, kf, reason, t0, ba_ms=0.0) -> TrackOutcome:
         ref = self.ref_kf if len(self.kf_frame) else -1
         rel = pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ pose
-        self.frame_ref = np.append(self.frame_ref, ref)
-        self.frame_rel = np.concatenate([self.frame_rel, rel[None]])
+        self._append_frame(ref, rel)
         ms = (time.perf_counter() - t0) * 1000 - ba_ms
         return TrackOutcome(pose, int(inliers), bool(lost), bool(kf), reason, ms, ba_ms, self.lm.n_alive)
+
+    def _append_frame(self, ref: int, rel: np.ndarray) -> None:
+        """A tracked frame's row in frame_ref/frame_rel (views of the buffers, grown by doubling)."""
+        n = len(self.frame_ref)
+        if n == len(self._ref_buf):
+            cap = max(64, 2 * n)
+            ref_buf, rel_buf = np.empty(cap, np.int64), np.empty((cap, 4, 4))
+            ref_buf[:n], rel_buf[:n] = self.frame_ref, self.frame_rel
+            self._ref_buf, self._rel_buf = ref_buf, rel_buf
+        self._ref_buf[n], self._rel_buf[n] = ref, rel
+        self.frame_ref, self.frame_rel = self._ref_buf[:n + 1], self._rel_buf[:n + 1]
 
     def _predict(self) -> np.ndarray:
         """Constant velocity: the last frame-to-frame motion (in the camera frame) once more."""
