@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -37,21 +39,41 @@ def test_auto_bounds_cover_the_first_frame_and_the_camera():
         auto_bounds(f, INTR, np.eye(4), 0.0)
 
 
-def test_keyframes_store_a_fraction_of_the_pixels_and_their_rays_concatenate():
+def _concatenated_rays(state):
+    """The keyframe rays as the mapper once cached them: everything concatenated up front."""
+    uv = np.concatenate([k.pixels for k in state.keyframes])
+    flat = torch.from_numpy(uv[:, 1].astype(np.int64) * state.W + uv[:, 0])
+    return {"dirs": state.dirs[flat], "rgb": state.t(np.concatenate([k.rgb for k in state.keyframes])) / 255.0,
+            "depth": state.t(np.concatenate([k.depth for k in state.keyframes])),
+            "owner": torch.from_numpy(np.concatenate([np.full(len(k), i) for i, k in enumerate(state.keyframes)]))}
+
+
+def test_keyframes_store_a_fraction_of_the_pixels_and_their_rays_are_gathered_as_concatenated():
     state = SlamState(tiny_config(), INTR, torch.device("cpu"))
     m = Mapper(state)
     m.build_model(np.array(tiny_config().map.bounds))
-    assert state.model is not None and state.map_opt is not None and m.keyframe_rays() is None
-    for i in range(2):
-        cur = state.prepare(ToyFrame(i, np.eye(4), INTR), None)
+    assert state.model is not None and state.map_opt is not None and m.keyframe_rays(np.arange(3)) is None
+    for i in range(3):
+        cur = state.prepare(ToyFrame(i, se3_exp_np(np.array([0.0, 0.0, 0.0, 0.02 * i, 0.01 * i, 0.0])), INTR), None)
         state.poses.append(np.eye(4))  # tracked
         kf = m.add_keyframe(cur, None)
     n = round(state.cfg.mapping.keyframe_ray_fraction * INTR.width * INTR.height)
-    assert len(kf) == n and kf.frame_id == 1 and np.all(kf.instance_ids == -1) and kf.usable.all()
-    rays = m.keyframe_rays()
-    assert rays["n"] == 2 and rays["dirs"].shape == (2 * n, 3) and rays["depth"].shape == (2 * n,)
-    assert float(rays["rgb"].max()) <= 1.0 and rays["owner"].tolist() == [0] * n + [1] * n
-    assert m.keyframe_rays() is rays  # cached until the keyframes change
+    assert len(kf) == n and kf.frame_id == 2 and np.all(kf.instance_ids == -1) and kf.usable.all()
+    short = state.keyframes[1]  # keyframes of other lengths (one empty) in between
+    state.keyframes.insert(1, replace(short, pixels=short.pixels[:7], rgb=short.rgb[:7], depth=short.depth[:7]))
+    state.keyframes.insert(2, replace(short, pixels=short.pixels[:0], rgb=short.rgb[:0], depth=short.depth[:0]))
+    ref = _concatenated_rays(state)
+    total = 3 * n + 7
+    assert ref["owner"].tolist() == [0] * n + [1] * 7 + [3] * n + [4] * n
+    for idx in (np.arange(total), np.random.default_rng(0).integers(0, total, 500), np.zeros(0, np.int64)):
+        rays = m.keyframe_rays(idx)
+        assert rays["n"] == 5 and rays["dirs"].shape == (len(idx), 3) and rays["depth"].shape == (len(idx),)
+        t = torch.from_numpy(idx)
+        for key in ("dirs", "rgb", "depth", "owner"):  # the same values, bit for bit, and types
+            assert rays[key].dtype == ref[key].dtype and torch.equal(rays[key], ref[key][t]), key
+    assert float(m.keyframe_rays(np.arange(total))["rgb"].max()) <= 1.0
+    with pytest.raises(IndexError):
+        m.keyframe_rays(np.array([total]))
 
 
 def test_sampling_respects_masks_and_keyframe_usable_flags():

@@ -63,7 +63,6 @@ class Mapper:
 
     def __init__(self, state: SlamState):
         self.s = state
-        self._kf_cache = None  # concatenated keyframe rays (torch) and owners
 
     def build_model(self, bounds: np.ndarray) -> None:
         """A fresh neural map over ``bounds`` (initialised from run.seed) and its optimiser."""
@@ -81,8 +80,8 @@ class Mapper:
                                          betas=(0.9, 0.99), eps=1e-15)
 
     def keyframes_changed(self) -> None:
-        """Drop the concatenated keyframe rays (after the keyframe list was replaced)."""
-        self._kf_cache = None
+        """The keyframe list was replaced: nothing to do (the rays are gathered from the keyframes
+        on each :meth:`keyframe_rays` call; no copy of them is kept)."""
 
     def map(self, frame, cur: CurrentFrame, instance_ids: Optional[np.ndarray] = None) -> tuple:
         """Bundle adjustment when due, then keyframe insertion when due, for the tracked frame
@@ -133,27 +132,34 @@ class Mapper:
                       subsample_depth(cur.masked_depth()),  # what the map was taught: static pixels
                       depth_raw_small=subsample_depth(cur.depth_np))
         s.keyframes.append(kf)
-        self._kf_cache = None
         return kf
 
-    def keyframe_rays(self) -> Optional[dict]:
-        """Every keyframe's stored rays as tensors: camera directions, colours (0-1), depths and
-        the keyframe each belongs to (cached until the keyframe count changes); None without keyframes."""
+    def keyframe_rays(self, idx: np.ndarray) -> Optional[dict]:
+        """The keyframes' stored rays ``idx`` (indices into all keyframes' rays in keyframe order, as
+        :meth:`ba_ray_indices` draws them) as tensors: camera directions, colours (0-1), depths and
+        the keyframe each belongs to; None without keyframes.  Gathered from the keyframes' own
+        arrays on each call: nothing is copied for the rays not drawn."""
         s = self.s
-        if self._kf_cache is None or self._kf_cache["n"] != len(s.keyframes):
-            if not s.keyframes:
-                return None
-            uv = np.concatenate([k.pixels for k in s.keyframes])
-            flat = torch.from_numpy((uv[:, 1].astype(np.int64) * s.W + uv[:, 0])).to(s.device)
-            self._kf_cache = {
-                "n": len(s.keyframes),
-                "dirs": s.dirs[flat],
-                "rgb": s.t(np.concatenate([k.rgb for k in s.keyframes])) / 255.0,
-                "depth": s.t(np.concatenate([k.depth for k in s.keyframes])),
-                "owner": torch.from_numpy(np.concatenate([np.full(len(k), i) for i, k in enumerate(s.keyframes)]))
-                .to(s.device),
-            }
-        return self._kf_cache
+        if not s.keyframes:
+            return None
+        idx = np.asarray(idx, np.int64)
+        start = np.cumsum([0] + [len(k) for k in s.keyframes])
+        owner = np.searchsorted(start, idx, side="right") - 1
+        if len(idx) and (idx.min() < 0 or idx.max() >= start[-1]):
+            raise IndexError(f"keyframe ray index out of range 0..{start[-1] - 1}")
+        local = idx - start[owner]
+        uv = np.empty((len(idx), 2), np.int64)
+        rgb = np.empty((len(idx), 3), np.uint8)
+        depth = np.empty(len(idx), np.float32)
+        order = np.argsort(owner, kind="stable")  # one keyframe at a time
+        bounds = np.searchsorted(owner[order], np.arange(len(s.keyframes) + 1))
+        for o in np.flatnonzero(np.diff(bounds)):
+            rows = order[bounds[o]:bounds[o + 1]]
+            k, at = s.keyframes[o], local[rows]
+            uv[rows], rgb[rows], depth[rows] = k.pixels[at], k.rgb[at], k.depth[at]
+        flat = torch.from_numpy(uv[:, 1] * s.W + uv[:, 0]).to(s.device)
+        return {"n": len(s.keyframes), "dirs": s.dirs[flat], "rgb": s.t(rgb) / 255.0, "depth": s.t(depth),
+                "owner": torch.from_numpy(owner).to(s.device)}
 
     def ba_ray_indices(self, cur: CurrentFrame, iters: int, n_rays: int, use_keyframes: bool = True):
         """Rays for ``iters`` BA iterations: indices into the concatenated keyframe rays (usable
@@ -178,8 +184,7 @@ class Mapper:
         keyframe + current poses; the last iteration's loss."""
         s = self.s
         mc, mp = s.cfg.mapping, s.cfg.map
-        kf = None if first else self.keyframe_rays()
-        n_kf = 0 if kf is None else kf["n"]
+        n_kf = 0 if first else len(s.keyframes)
         kf_idx_np, cur_idx_np = self.ba_ray_indices(cur, iters, n_rays, use_keyframes=n_kf > 0)
         n_kfr, n_cur = len(kf_idx_np) // iters, len(cur_idx_np) // iters
         if n_cur + n_kfr == 0:
@@ -199,13 +204,13 @@ class Mapper:
         S = mp.SAMPLES_FREE + mp.samples_surface
         # sample all iterations' rays up front
         cur_idx = torch.from_numpy(cur_idx_np).to(s.device) if n_cur else None
-        kf_idx = torch.from_numpy(kf_idx_np).to(s.device) if n_kfr else None
         parts_dirs, parts_rgb, parts_d, parts_owner = [], [], [], []
         if n_kfr:
-            parts_dirs.append(kf["dirs"][kf_idx].view(iters, n_kfr, 3))
-            parts_rgb.append(kf["rgb"][kf_idx].view(iters, n_kfr, 3))
-            parts_d.append(kf["depth"][kf_idx].view(iters, n_kfr))
-            parts_owner.append(kf["owner"][kf_idx].view(iters, n_kfr))
+            kf = self.keyframe_rays(kf_idx_np)
+            parts_dirs.append(kf["dirs"].view(iters, n_kfr, 3))
+            parts_rgb.append(kf["rgb"].view(iters, n_kfr, 3))
+            parts_d.append(kf["depth"].view(iters, n_kfr))
+            parts_owner.append(kf["owner"].view(iters, n_kfr))
         if n_cur:
             parts_dirs.append(s.dirs[cur_idx].view(iters, n_cur, 3))
             parts_rgb.append(cur.rgb[cur_idx].view(iters, n_cur, 3))
