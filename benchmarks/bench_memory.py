@@ -10,18 +10,20 @@ with the sizes of what grows: neural-map keyframes and their stored rays, the ba
 landmarks and observations, the motion module's keyframe features, and the per-frame logs (tracking
 events, classifier-update records).  The growth per 100 frames is a least-squares line over the
 second half of the rows.  Sizes are the ``nbytes`` of the numpy arrays in the objects' public
-attributes; what lives only in private members (the mapper's concatenated keyframe-ray tensors,
-``Mapper._kf_cache``: about 32 bytes per stored ray on top of the keyframes' own arrays) is not
-counted separately and shows in the RSS only.
+attributes (the mapper gathers each optimisation's rays from the keyframes' own arrays and keeps no
+copy of them).
 
 The rows are taken after each frame by wrapping the runner's per-frame step (``_Run._step``: the
 runner has no public per-frame hook); the run itself is unchanged.
 
-Measured (walker preset 640x480, 1000 frames, one thread, 2 busy cores): peak 1707 MB (mesh extraction
-included; timing.json's peak_rss_mb says the same), RSS 1412 MB after the last frame, +24 MB per 100
-frames over frames 500-1000: the neural-map keyframes (20 per 100 frames, 15360 rays each: +9.9 MB in
-their arrays, about as much again in the mapper's ray tensors), motion-module keyframe features
-(+1.6 MB) and backend landmarks (+0.3 MB).
+Measured at 1927648 (walker preset 640x480, 1000 frames, one thread, 2 busy cores, 1000 first-frame
+iterations): peak 1707 MB (mesh extraction included; timing.json's peak_rss_mb says the same), RSS
+1412 MB after the last frame, +24 MB per 100 frames over frames 500-1000: the neural-map keyframes
+(20 per 100 frames, 15360 rays each: +9.9 MB in their arrays, about as much again in the mapper's
+concatenated copy of them, since removed), motion-module keyframe features (+1.6 MB) and backend
+landmarks (+0.3 MB, dead rows never dropped; since compacted). At 4df9335, 300 frames, beside the
+code before on the same machine: RSS 1252 against 1342 MB, run peak 1493 against 1528 MB, landmark
+rows 3287 against 8008 (2238 alive in both).
 """
 
 from __future__ import annotations
