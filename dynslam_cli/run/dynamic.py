@@ -4,7 +4,9 @@ Per frame: segment, encode and classify the instances (motion module) → track 
 pixels → render the map at the tracked pose and run the bidirectional inconsistency check → on a
 contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
 map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
-the keyframe's rays.
+the keyframe's rays.  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
+classify, check and update), ``checkable`` (what the map can judge), ``stayed`` (stayed put) and
+``forget`` (keyframe rays masked or gone); this loop only drives them.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ from typing import Optional
 
 import numpy as np
 
+from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
+from dynslam_cli.motion.forget import carve, forget_departed, near_ids, refresh_keyframes
+from dynslam_cli.motion.stayed import stayed_put
 from dynslam_cli.utils.io import atomic_path, write_text_atomic
 
 # A pixel is inconsistent only when no rendered depth within this many pixels (at check resolution) agrees with the
@@ -59,158 +64,6 @@ class DynamicLoop:
             return np.array(gt, np.float64) if gt is not None else np.eye(4)
         return self.slam.predict_pose()
 
-    def _refresh_keyframes(self) -> int:
-        """Recompute every keyframe's usable rays from the current classifier, and drop the backend
-        landmarks made on instances now called dynamic; returns rays masked."""
-        masked = 0
-        for fid in self.mm.keyframes:
-            self.slam.forget_landmarks(fid, self.mm.keyframe_dynamic_ids(fid))
-        for kf in self.slam.keyframes:
-            if kf.frame_id not in self.mm.keyframes:
-                continue
-            dyn_ids = self.mm.keyframe_dynamic_ids(kf.frame_id)
-            kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
-            if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
-                kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)
-            gone = getattr(kf, "gone", None)
-            if gone is not None:  # surfaces seen gone stay forgotten
-                kf.usable &= ~gone
-            masked += int((~kf.usable).sum())
-        return masked
-
-    def checkable_depth(self, depth: np.ndarray, pose_c2w: np.ndarray, step: int = 4):
-        """What of the observed depth the map can judge: returns ``(depth, forward_ok)``.
-
-        ``depth`` is the observation with these pixels set to 0 (invalid):
-
-        - pixels within 2 px of a depth discontinuity (relative jump > 5 %), where a one-pixel
-          misalignment between the reduced-resolution render and the observation reads as metres;
-        - pixels whose 3-D point lies outside the view frustum of every recent keyframe: newly
-          revealed space the map never observed, whose rendered depth means nothing.
-
-        ``forward_ok`` (bool) marks the pixels where "observed in front of the map" is evidence of
-        motion: some keyframe saw the point or the free space where it now is, not an occluder in
-        front of it (space hidden behind an occluder is unknown to the map too).  "Observed behind
-        the map" (a mapped thing left) is judged on every valid pixel.
-        """
-        from dynslam_cli.slam.keyframes import depth_edges, keyframe_visibility
-
-        d = depth.astype(np.float32)
-        out = np.where((d > 0) & ~depth_edges(d, 0.05, 2), d, 0.0).astype(np.float32)
-        kfs = self.slam.keyframes
-        if not kfs:
-            return out, out > 0
-        frustum, observed = keyframe_visibility(d, pose_c2w, self.slam.intr, kfs[-self.frustum_keyframes:], step,
-                                                self.mm.m.depth_threshold)
-        out[~frustum] = 0.0
-        return out, observed
-
-    def stationary(self, depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray) -> Optional[np.ndarray]:
-        """Instances whose points stayed within ``run.still_tolerance`` (0 = motion.depth_threshold)
-        of the depth every keyframe of the last ``run.still_frames`` frames saw there (see
-        :func:`~dynslam_cli.slam.keyframes.stationary_instances`); None when ``run.still_frames``
-        is 0.  It breaks the loop where a static surface once labelled dynamic is never mapped and
-        so always looks 'in front of the map'.  With ``motion.centre_feature``, where 'static' is
-        learnt at the place only, the window is half as long."""
-        centre = bool(self.mm.m.centre_feature)
-        frames = self.still_frames // 2 if centre else self.still_frames
-        if frames < 2:
-            return None
-        from dynslam_cli.slam.keyframes import stationary_instances
-
-        now = self.slam.n_frames - 1
-        window = [kf for kf in self.slam.keyframes if now - frames <= kf.frame_id < now]
-        tol = self.still_tolerance if self.still_tolerance > 0 else self.mm.m.depth_threshold
-        return stationary_instances(depth, ids, pose_c2w, self.slam.intr, window, tol)
-
-    def forget_departed(self, res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray) -> int:
-        """With ``run.forget_radius`` > 0: the keyframe rays on the surface of what the backward
-        check saw leave (flagged rendered segments, where the observation lies more than t_d
-        behind the map) are marked gone, so the map stops replaying a departed object even when
-        the classifier does not recognise its keyframe crops.  Returns the rays newly marked."""
-        if self.forget_radius <= 0 or res is None or res.rendered_ids is None or not len(res.rendered_flagged):
-            return 0
-        import cv2
-
-        from dynslam_cli.geometry.camera import pixel_dirs, transform
-        from dynslam_cli.slam.keyframes import forget_near
-
-        rids = res.rendered_ids
-        h, w = rids.shape
-        ren = cv2.resize(rendered.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
-        obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
-        left = np.isin(rids, res.rendered_flagged) & (ren > 0) & (obs > 0) & (obs - ren > self.mm.m.depth_threshold)
-        if not left.any():
-            return 0
-        intr = self.slam.intr
-        sx, sy = w / observed.shape[1], h / observed.shape[0]
-        fx, fy, cx, cy = intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5
-        vs, us = np.nonzero(left)
-        pw = transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
-        return forget_near(self.slam.keyframes, pw, intr, self.forget_radius)
-
-    def carve(self, depth: np.ndarray, static_mask: np.ndarray) -> int:
-        """With ``run.carve_margin`` > 0, judged on the newest keyframe's static pixels, the earlier
-        keyframes' rays are marked gone where the scene changed along them: the newest keyframe
-        sees through their surface point (it has left: a picked-up box, a person who walked on),
-        or sees a surface in the free space they crossed (something arrived: the box set down
-        elsewhere). Returns the rays newly marked."""
-        kfs = self.slam.keyframes
-        if self.carve_margin <= 0 or len(kfs) < 2:
-            return 0
-        from dynslam_cli.slam.keyframes import forget_overtaken, forget_seen_through
-
-        d = np.where(static_mask, np.asarray(depth, np.float32), 0).astype(np.float32)
-        window = max(1, int(round(3 * self.width / 640)))
-        pose, intr = kfs[-1].pose_c2w, self.slam.intr
-        n = forget_seen_through(kfs[:-1], d, pose, intr, self.carve_margin, window)
-        return n + forget_overtaken(kfs[:-1], d, pose, intr, self.carve_margin, max(1, int(round(2 * self.width / 320))))
-
-    def near_ids(self, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-        """(M, 2) int32: the largest and smallest instance id within the mask dilation radius of
-        each keyframe ray ``pixels`` (u, v), so that re-masking a keyframe after a classifier
-        update dilates dynamic instances as the live mask does."""
-        import cv2
-
-        from dynslam_cli.motion.module import dilation_radius
-
-        r = dilation_radius(self.mm.m.mask_dilation, ids.shape[1])
-        u, v = pixels[:, 0].astype(np.int64), pixels[:, 1].astype(np.int64)
-        own = ids[v, u].astype(np.int32)
-        if r <= 0:
-            return np.stack([own, own], 1)
-        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-        f = ids.astype(np.float32)  # exact for ids < 2^24
-        hi = cv2.dilate(f, k)[v, u].astype(np.int32)
-        lo = cv2.erode(f, k)[v, u].astype(np.int32)
-        return np.stack([hi, lo], 1)
-
-    @staticmethod
-    def closest_rendered(rendered: np.ndarray, observed: np.ndarray, radius: int = 1) -> np.ndarray:
-        """Per pixel, the rendered depth within ``radius`` pixels that is closest to the observed one.
-
-        The map is smoother than the sensor (object edges blur into the background at reduced
-        resolution), so a pixel only counts as inconsistent when *no* nearby rendered depth agrees
-        with the observation: a mover's interior still differs everywhere, a blurred edge does not.
-        """
-        import cv2
-
-        h, w = rendered.shape
-        obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
-        pad = np.pad(rendered.astype(np.float32), radius, mode="edge")
-        best = rendered.astype(np.float32).copy()
-        err = np.where(best > 0, np.abs(best - obs), np.inf)
-        for dy in range(2 * radius + 1):
-            for dx in range(2 * radius + 1):
-                cand = pad[dy:dy + h, dx:dx + w]
-                e = np.where(cand > 0, np.abs(cand - obs), np.inf)
-                better = e < err
-                best[better] = cand[better]
-                err[better] = e[better]
-        return np.where(obs > 0, best, rendered).astype(np.float32)
-
-    frustum_keyframes = 20  # keyframes whose frusta count as 'observed space' for the check
-
     def process(self, frame, stamp: str) -> dict:
         """Process one frame; returns the per-component timings (ms) and what happened."""
         t0 = time.perf_counter()
@@ -226,14 +79,18 @@ class DynamicLoop:
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
             raw_depth = r_depth
             t_render = (time.perf_counter() - t1) * 1e3
-            judged_depth, forward_ok = self.checkable_depth(frame.depth, tr.pose_c2w)
+            judged_depth, forward_ok = checkable_depth(frame.depth, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
+                                                       self.mm.m.depth_threshold)
             judged = dataclasses.replace(frame, depth=judged_depth)
             if self.check_radius > 0:
-                r_depth = self.closest_rendered(r_depth, judged.depth, self.check_radius)
+                r_depth = closest_rendered(r_depth, judged.depth, self.check_radius)
             before = inst.static_mask.copy()
-            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok,
-                                              self.stationary(frame.depth, inst.ids, tr.pose_c2w))
-            self.forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w)
+            still = stayed_put(frame.depth, inst.ids, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
+                               self.slam.n_frames - 1, self.still_frames, self.still_tolerance,
+                               self.mm.m.depth_threshold, bool(self.mm.m.centre_feature))
+            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still)
+            forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w, self.slam.keyframes,
+                            self.slam.intr, self.mm.m.depth_threshold, self.forget_radius)
             if record is not None and self.retrack_fraction > 0:
                 valid = np.asarray(frame.depth) > 0
                 newly = int((before & ~inst.static_mask & valid).sum())
@@ -248,7 +105,7 @@ class DynamicLoop:
         if record is not None:
             rec = record.to_json()
             rec["timestamp"] = stamp
-            masked = self._refresh_keyframes()
+            masked = refresh_keyframes(self.slam, self.mm)
             rec["keyframe_rays_masked"] = masked
             rec["retracked"] = retracked
             self.records.append(rec)
@@ -256,9 +113,9 @@ class DynamicLoop:
         mr = self.slam.map(frame, inst.static_mask, inst.ids)
         if len(self.slam.keyframes) > n_kf:
             kf = self.slam.keyframes[-1]
-            kf.near_ids = self.near_ids(inst.ids, kf.pixels)
+            kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
             self.mm.register_keyframe(kf.frame_id, inst)
-            self.carve(frame.depth, inst.static_mask)
+            carve(self.slam.keyframes, self.slam.intr, frame.depth, inst.static_mask, self.carve_margin, self.width)
         fid = self.slam.n_frames - 1
         if self.slam.backend_keyframe and fid not in self.mm.keyframes:  # its landmarks carry these ids
             self.mm.register_keyframe(fid, inst)

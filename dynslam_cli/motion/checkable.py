@@ -1,0 +1,124 @@
+"""What of an observation the map can judge, before the inconsistency check (:mod:`.check`).
+
+:func:`checkable_depth` leaves out depth edges and space no recent keyframe saw, and says where
+"observed in front of the map" is evidence of motion (:func:`keyframe_visibility`);
+:func:`closest_rendered` forgives the map's blurred edges.  :func:`project_into` puts world points
+into a keyframe's camera (also used by :mod:`.stayed` and :mod:`.forget`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dynslam_cli.geometry.camera import pixel_dirs, project, transform
+from dynslam_cli.geometry.lie import inv_np
+from dynslam_cli.slam.keyframes import DEPTH_STRIDE, depth_edges
+
+# keyframes whose frusta count as 'observed space' for the check
+FRUSTUM_KEYFRAMES = 20
+
+
+def project_into(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int):
+    """World points into a camera: camera-frame points, pixel u, v and whether each lands inside
+    the W×H image in front of the camera."""
+    pc = transform(inv_np(pose_c2w), world)
+    uv, z = project(pc, intr.fx, intr.fy, intr.cx, intr.cy)
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    return pc, u, v, inside
+
+
+def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
+                        occlusion_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """What the keyframes saw of the current frame's back-projected points (at ``pose_c2w``).
+
+    Returns two (H, W) bool masks, evaluated every ``step``-th pixel and upsampled (nearest):
+
+    - ``in_frustum``: the point lies inside the view frustum of at least one keyframe;
+    - ``observed``: for at least one keyframe the point is inside its frustum and the keyframe's
+      measured depth there (``depth_small``) does not stop more than ``occlusion_margin`` in front
+      of it: that keyframe saw the point, or the free space where it now is, not an occluder.
+      Keyframes without ``depth_small`` count their whole frustum as observed.
+
+    Both are all False when there are no keyframes.
+    """
+    import cv2
+
+    d = np.asarray(depth, np.float32)
+    H, W = d.shape
+    if not keyframes:
+        return np.zeros((H, W), bool), np.zeros((H, W), bool)
+    vs, us = np.mgrid[0:H:step, 0:W:step]
+    z = d[::step, ::step]
+    pts = pixel_dirs(us.ravel(), vs.ravel(), intr.fx, intr.fy, intr.cx, intr.cy) * z.reshape(-1, 1)
+    world = transform(pose_c2w, pts)
+    frustum = np.zeros(len(world), bool)
+    observed = np.zeros(len(world), bool)
+    for kf in keyframes:
+        pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H)
+        frustum |= inside
+        small = kf.depth_small
+        if small is not None and inside.any():
+            hs, ws = small.shape
+            idx = np.flatnonzero(inside)
+            iu = np.clip(np.round(u[idx] / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+            iv = np.clip(np.round(v[idx] / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+            d_kf = small[iv, iu].astype(np.float32)
+            inside[idx[(d_kf <= 0) | (d_kf < pc[idx, 2] - occlusion_margin)]] = False
+        observed |= inside
+
+    def up(m):
+        return cv2.resize(m.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+
+    return up(frustum), up(observed)
+
+
+def checkable_depth(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, depth_threshold: float,
+                    step: int = 4, frustum_keyframes: int = FRUSTUM_KEYFRAMES):
+    """What of the observed depth the map can judge: returns ``(depth, forward_ok)``.
+
+    ``depth`` is the observation with these pixels set to 0 (invalid):
+
+    - pixels within 2 px of a depth discontinuity (relative jump > 5 %), where a one-pixel
+      misalignment between the reduced-resolution render and the observation reads as metres;
+    - pixels whose 3-D point lies outside the view frustum of every one of the last
+      ``frustum_keyframes`` ``keyframes``: newly revealed space the map never observed, whose
+      rendered depth means nothing.
+
+    ``forward_ok`` (bool) marks the pixels where "observed in front of the map" is evidence of
+    motion: some keyframe saw the point or the free space where it now is, not an occluder in
+    front of it (space hidden behind an occluder, more than ``depth_threshold`` behind what the
+    keyframe measured, is unknown to the map too).  "Observed behind the map" (a mapped thing
+    left) is judged on every valid pixel.
+    """
+    d = depth.astype(np.float32)
+    out = np.where((d > 0) & ~depth_edges(d, 0.05, 2), d, 0.0).astype(np.float32)
+    if not keyframes:
+        return out, out > 0
+    frustum, observed = keyframe_visibility(d, pose_c2w, intr, keyframes[-frustum_keyframes:], step, depth_threshold)
+    out[~frustum] = 0.0
+    return out, observed
+
+
+def closest_rendered(rendered: np.ndarray, observed: np.ndarray, radius: int = 1) -> np.ndarray:
+    """Per pixel, the rendered depth within ``radius`` pixels that is closest to the observed one.
+
+    The map is smoother than the sensor (object edges blur into the background at reduced
+    resolution), so a pixel only counts as inconsistent when *no* nearby rendered depth agrees
+    with the observation: a mover's interior still differs everywhere, a blurred edge does not.
+    """
+    import cv2
+
+    h, w = rendered.shape
+    obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+    pad = np.pad(rendered.astype(np.float32), radius, mode="edge")
+    best = rendered.astype(np.float32).copy()
+    err = np.where(best > 0, np.abs(best - obs), np.inf)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            cand = pad[dy:dy + h, dx:dx + w]
+            e = np.where(cand > 0, np.abs(cand - obs), np.inf)
+            better = e < err
+            best[better] = cand[better]
+            err[better] = e[better]
+    return np.where(obs > 0, best, rendered).astype(np.float32)

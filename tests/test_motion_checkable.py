@@ -1,0 +1,66 @@
+"""motion/checkable.py: what of the observation the map can judge, and the blur-forgiving render."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from dynslam_cli.motion.checkable import checkable_depth, closest_rendered, keyframe_visibility
+from dynslam_cli.slam.keyframes import subsample_depth
+
+INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+
+
+def test_checkable_depth_drops_edges_and_unseen_space():
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[20:30, 20:30] = 1.0  # a box in front of a wall
+    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=None)
+    out, fwd = checkable_depth(depth, np.eye(4), INTR, [kf], 0.3, step=1)
+    assert out[25, 25] == 1.0 and out[5, 5] == 2.0  # interiors kept
+    assert out[20, 25] == 0 and out[19, 25] == 0 and out[25, 30] == 0  # both sides of the step dropped
+    assert fwd.all()  # without a stored depth map the whole frustum counts as observed
+    # the camera moved 1 m to the right: what it sees on its right was never in a keyframe's view
+    moved = np.eye(4)
+    moved[0, 3] = 1.0
+    out2, _ = checkable_depth(depth, moved, INTR, [kf], 0.3, step=1)
+    assert out2[5, 5] > 0 and np.all(out2[:, -5:] == 0)
+    # only the last frustum_keyframes keyframes count: an older one that saw the right side does not
+    right = np.eye(4)
+    right[0, 3] = 1.0
+    old = SimpleNamespace(pose_c2w=right, depth_small=None)
+    assert np.all(checkable_depth(depth, moved, INTR, [old, kf], 0.3, step=1)[0][:, -5:] > 0)
+    assert np.all(checkable_depth(depth, moved, INTR, [old, kf], 0.3, step=1, frustum_keyframes=1)[0][:, -5:] == 0)
+    # no keyframes: every valid pixel off the edges is judged, forward included
+    out3, fwd3 = checkable_depth(depth, moved, INTR, [], 0.3, step=1)
+    np.testing.assert_array_equal(fwd3, out3 > 0)
+    assert out3[:, -5:].all()
+
+
+def test_checkable_depth_knows_what_keyframes_saw_behind_occluders():
+    seen = np.full((48, 64), 2.0, np.float32)
+    seen[20:32, 20:32] = 1.0  # the keyframe saw a box in front of the wall
+    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=subsample_depth(seen))
+    now = np.full((48, 64), 2.0, np.float32)  # the box has gone ...
+    now[4:12, 40:52] = 1.5  # ... and something new stands in front of the wall
+    out, fwd = checkable_depth(now, np.eye(4), INTR, [kf], 0.3, step=1)
+    assert not fwd[26, 26] and out[26, 26] == 2.0  # the wall behind the old box: never observed
+    assert fwd[8, 46] and fwd[40, 5]  # free space / the wall the keyframe saw
+    # a wider occlusion margin: 1 m behind the box counts as observed
+    _, fwd_wide = checkable_depth(now, np.eye(4), INTR, [kf], 1.5, step=1)
+    assert fwd_wide[26, 26]
+
+
+def test_keyframe_visibility_without_keyframes_sees_nothing():
+    frustum, observed = keyframe_visibility(np.ones((8, 10), np.float32), np.eye(4), INTR, [])
+    assert frustum.shape == observed.shape == (8, 10) and not frustum.any() and not observed.any()
+
+
+def test_closest_rendered_forgives_blurred_edges_not_movers():
+    ren = np.full((20, 20), 3.0, np.float32)
+    ren[5:15, 5:10] = 1.0  # the map's object, one pixel narrower than the observation
+    obs = np.full((20, 20), 3.0, np.float32)
+    obs[5:15, 5:11] = 1.0
+    obs[2:6, 14:18] = 0.8  # a mover in front of the wall
+    out = closest_rendered(ren, obs, radius=1)
+    assert out[8, 10] == 1.0  # edge pixel: a neighbour agrees
+    assert out[3, 16] == 3.0  # mover interior: nothing near agrees, still 2.2 m inconsistent
+    np.testing.assert_array_equal(closest_rendered(ren, obs, radius=0), ren)
