@@ -9,6 +9,11 @@ Public API (import from the submodules to keep `import dynslam_cli.motion` light
 * encoders: ``encode_effnet.EffNetLite0Encoder``, ``encode_onnx.OnnxEncoder`` (presets onnx, clip,
   dino, blip), ``encode_hist.ColorHistEncoder``, ``encoders.make_encoder``
 * ``classifier`` -- ``MotionClassifier``, ``ReplayBuffer``, ``update_with_replay``, prior files
-* ``check.inconsistency_check`` -- the bidirectional depth check
+* ``embed_cache.EmbeddingCache`` -- embeddings of unchanged instances reused across frames
+* ``check.inconsistency_check`` -- the bidirectional depth check; ``checkable.checkable_depth`` /
+  ``closest_rendered`` -- what of the observation the map can judge
+* ``stayed.stayed_put`` -- instances that stayed put (never labelled moving)
+* ``forget`` -- ``refresh_keyframes`` (re-mask keyframe rays after a classifier update),
+  ``forget_departed``, ``carve`` (keyframe rays of surfaces seen gone)
 * ``prior.fit_prior`` -- ``dynslam prior fit``
 """
