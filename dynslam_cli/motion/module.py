@@ -13,7 +13,6 @@ import torch
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.check import check_size, inconsistency_check
 from dynslam_cli.motion.classifier import MotionClassifier, ReplayBuffer, load_prior, update_with_replay
-from dynslam_cli.motion.embed_cache import EmbeddingCache
 from dynslam_cli.motion.encoders import make_encoder
 from dynslam_cli.motion.segment_geometric import GeometricSegmenter
 from dynslam_cli.motion.segmenters import make_segmenter
@@ -98,7 +97,6 @@ class MotionModule:
         self.prior_class_ids = prior_class_ids(self.segmenter, m.prior_classes)
         self.keyframes: dict[int, dict] = {}
         self.updates = 0
-        self.embeddings = EmbeddingCache()  # the last frame's instance embeddings, reused where unchanged
 
     # --- features
     def _features(self, emb: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -142,7 +140,7 @@ class MotionModule:
         seg = self.segmenter.segment(rgb, depth)
         t1 = time.perf_counter()
         k = seg.count
-        emb, _ = self.embeddings.encode(self.encoder, rgb, seg.ids, k)
+        emb = self.encoder.encode(rgb, seg.ids) if k else np.zeros((0, self.encoder.dim), np.float32)
         t2 = time.perf_counter()
         centres = instance_centres(depth, seg.ids, k, self.intr, pose_c2w_guess)
         feats = self._features(emb, centres)
@@ -263,8 +261,7 @@ class MotionModule:
         return {"classifier": self.classifier.state_dict(), "replay": self.replay.state_dict(),
                 "keyframes": {k: {"feats": torch.from_numpy(v["feats"].copy()), "prior": torch.from_numpy(v["prior"].copy())}
                               for k, v in self.keyframes.items()},
-                "updates": self.updates, "encoder": self.encoder.name, "in_dim": self.in_dim,
-                "embed_cache": self.embeddings.state_dict()}
+                "updates": self.updates, "encoder": self.encoder.name, "in_dim": self.in_dim}
 
     def load_state_dict(self, d: dict) -> None:
         if d.get("encoder") != self.encoder.name or int(d.get("in_dim", -1)) != self.in_dim:
@@ -278,4 +275,3 @@ class MotionModule:
         self.keyframes = {int(k): {"feats": arr(v["feats"], np.float32), "prior": arr(v["prior"], bool)}
                           for k, v in d["keyframes"].items()}
         self.updates = int(d["updates"])
-        self.embeddings.load_state_dict(d.get("embed_cache", {}))
