@@ -9,7 +9,6 @@ Public API (import from the submodules to keep `import dynslam_cli.motion` light
 * encoders: ``encode_effnet.EffNetLite0Encoder``, ``encode_onnx.OnnxEncoder`` (presets onnx, clip,
   dino, blip), ``encode_hist.ColorHistEncoder``, ``encoders.make_encoder``
 * ``classifier`` -- ``MotionClassifier``, ``ReplayBuffer``, ``update_with_replay``, prior files
-* ``embed_cache.EmbeddingCache`` -- embeddings of unchanged instances reused across frames
 * ``check.inconsistency_check`` -- the bidirectional depth check; ``checkable.checkable_depth`` /
   ``closest_rendered`` -- what of the observation the map can judge
 * ``stayed.stayed_put`` -- instances that stayed put (never labelled moving)
