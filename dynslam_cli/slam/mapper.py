@@ -79,10 +79,6 @@ class Mapper:
             s.map_opt = torch.optim.Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map,
                                          betas=(0.9, 0.99), eps=1e-15)
 
-    def keyframes_changed(self) -> None:
-        """The keyframe list was replaced: nothing to do (the rays are gathered from the keyframes
-        on each :meth:`keyframe_rays` call; no copy of them is kept)."""
-
     def map(self, frame, cur: CurrentFrame, instance_ids: Optional[np.ndarray] = None) -> tuple:
         """Bundle adjustment when due, then keyframe insertion when due, for the tracked frame
         ``cur``: (MapResult or None when nothing ran, whether the backend inserted a keyframe)."""

@@ -163,7 +163,6 @@ class SLAM(SlamState):
         self.rng.bit_generator.state = d["rng"]
         self.tgen.set_state(d["tgen"])
         self.cur = None
-        self.mapper.keyframes_changed()
         pd = d.get("prev_depth")
         self.frontend.prev_depth = None if pd is None else np.asarray(pd, np.float32)
         self.backend = None
