@@ -192,6 +192,40 @@ def forward_levels_jac(x, table, res, dense, out, jac):
                                          + (t6 - t2) * (e0 * f1) + (t7 - t3) * (f0 * f1))
 
 
+@njit(inline="always")
+def _corner_dx(table, lv, ids, grad_out, n, nf, f0, f1, f2):
+    """Level ``lv``'s derivative of ``sum_f grad_out[n, lv*F+f] * feature_f`` along x, y, z per unit
+    of cell (multiply by R): with ``s_k = sum_f grad_out[n, lv*F+f] * table[lv, ids[k], f]``, the
+    sum over the 4 corner pairs along each axis of (s_k(1) - s_k(0)) times the other two weights."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    s0 = zero
+    s1 = zero
+    s2 = zero
+    s3 = zero
+    s4 = zero
+    s5 = zero
+    s6 = zero
+    s7 = zero
+    for f in range(nf):
+        go = grad_out[n, lv * nf + f]
+        s0 += go * table[lv, ids[0], f]
+        s1 += go * table[lv, ids[1], f]
+        s2 += go * table[lv, ids[2], f]
+        s3 += go * table[lv, ids[3], f]
+        s4 += go * table[lv, ids[4], f]
+        s5 += go * table[lv, ids[5], f]
+        s6 += go * table[lv, ids[6], f]
+        s7 += go * table[lv, ids[7], f]
+    e0 = one - f0
+    e1 = one - f1
+    e2 = one - f2
+    d0 = (s1 - s0) * (e1 * e2) + (s3 - s2) * (f1 * e2) + (s5 - s4) * (e1 * f2) + (s7 - s6) * (f1 * f2)
+    d1 = (s2 - s0) * (e0 * e2) + (s3 - s1) * (f0 * e2) + (s6 - s4) * (e0 * f2) + (s7 - s5) * (f0 * f2)
+    d2 = (s4 - s0) * (e0 * e1) + (s5 - s1) * (f0 * e1) + (s6 - s2) * (e0 * f1) + (s7 - s3) * (f0 * f1)
+    return d0, d1, d2
+
+
 @njit(parallel=True, fastmath=False, cache=True)
 def contract_jac(x, jac, grad_out, grad_x):
     """grad_x[n, d] = sum over levels and features of grad_out[n, l*F+f] * jac[l, n, f, d], zero
@@ -232,7 +266,6 @@ def backward_levels(x, table, grad_out, res, dense, do_table, do_x, grad_table, 
     n_lv, tsize, nf = table.shape
     mask = np.int64(tsize - 1)
     zero = np.float32(0.0)
-    one = np.float32(1.0)
     for lv in prange(n_lv):
         if do_table:
             grad_table[lv] = zero
@@ -248,33 +281,10 @@ def backward_levels(x, table, grad_out, res, dense, do_table, do_x, grad_table, 
                     for k in range(8):
                         grad_table[lv, ids[k], f] += ws[k] * g
             if do_x:
-                s0 = zero
-                s1 = zero
-                s2 = zero
-                s3 = zero
-                s4 = zero
-                s5 = zero
-                s6 = zero
-                s7 = zero
-                for f in range(nf):
-                    go = grad_out[n, lv * nf + f]
-                    s0 += go * table[lv, ids[0], f]
-                    s1 += go * table[lv, ids[1], f]
-                    s2 += go * table[lv, ids[2], f]
-                    s3 += go * table[lv, ids[3], f]
-                    s4 += go * table[lv, ids[4], f]
-                    s5 += go * table[lv, ids[5], f]
-                    s6 += go * table[lv, ids[6], f]
-                    s7 += go * table[lv, ids[7], f]
-                e0 = one - f0
-                e1 = one - f1
-                e2 = one - f2
-                gx_part[lv, n, 0] = rf * ((s1 - s0) * (e1 * e2) + (s3 - s2) * (f1 * e2)
-                                          + (s5 - s4) * (e1 * f2) + (s7 - s6) * (f1 * f2))
-                gx_part[lv, n, 1] = rf * ((s2 - s0) * (e0 * e2) + (s3 - s1) * (f0 * e2)
-                                          + (s6 - s4) * (e0 * f2) + (s7 - s5) * (f0 * f2))
-                gx_part[lv, n, 2] = rf * ((s4 - s0) * (e0 * e1) + (s5 - s1) * (f0 * e1)
-                                          + (s6 - s2) * (e0 * f1) + (s7 - s3) * (f0 * f1))
+                d0, d1, d2 = _corner_dx(table, lv, ids, grad_out, n, nf, f0, f1, f2)
+                gx_part[lv, n, 0] = rf * d0
+                gx_part[lv, n, 1] = rf * d1
+                gx_part[lv, n, 2] = rf * d2
 
 
 @njit(parallel=True, fastmath=False, cache=True)
@@ -319,30 +329,7 @@ def backward_x_points(x, table, grad_out, res, dense, grad_x):
             c1, f1 = _cell_frac(x1, rf, r)
             c2, f2 = _cell_frac(x2, rf, r)
             ids = _corner_indices(c0, c1, c2, dense[lv] != 0, r + 1, mask)
-            s0 = zero
-            s1 = zero
-            s2 = zero
-            s3 = zero
-            s4 = zero
-            s5 = zero
-            s6 = zero
-            s7 = zero
-            for f in range(nf):
-                go = grad_out[n, lv * nf + f]
-                s0 += go * table[lv, ids[0], f]
-                s1 += go * table[lv, ids[1], f]
-                s2 += go * table[lv, ids[2], f]
-                s3 += go * table[lv, ids[3], f]
-                s4 += go * table[lv, ids[4], f]
-                s5 += go * table[lv, ids[5], f]
-                s6 += go * table[lv, ids[6], f]
-                s7 += go * table[lv, ids[7], f]
-            e0 = one - f0
-            e1 = one - f1
-            e2 = one - f2
-            d0 = (s1 - s0) * (e1 * e2) + (s3 - s2) * (f1 * e2) + (s5 - s4) * (e1 * f2) + (s7 - s6) * (f1 * f2)
-            d1 = (s2 - s0) * (e0 * e2) + (s3 - s1) * (f0 * e2) + (s6 - s4) * (e0 * f2) + (s7 - s5) * (f0 * f2)
-            d2 = (s4 - s0) * (e0 * e1) + (s5 - s1) * (f0 * e1) + (s6 - s2) * (e0 * f1) + (s7 - s3) * (f0 * f1)
+            d0, d1, d2 = _corner_dx(table, lv, ids, grad_out, n, nf, f0, f1, f2)
             g0 += d0 * rf
             g1 += d1 * rf
             g2 += d2 * rf
