@@ -8,6 +8,8 @@ from typing import Optional
 
 import numpy as np
 
+from dynslam_cli.geometry import camera
+
 SCALE = 1.2  # ORB pyramid scale factor
 LEVELS = 8
 
@@ -93,10 +95,7 @@ def project(T_c2w: np.ndarray, X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray
     """Pixels (N×2) and depths (N) of world points ``X`` (N×3) in the camera at ``T_c2w``."""
     R, t = T_c2w[:3, :3], T_c2w[:3, 3]
     pc = (X - t) @ R  # R^T (X - t)
-    z = pc[:, 2]
-    zs = np.where(np.abs(z) > 1e-9, z, 1e-9)
-    uv = np.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], 1)
-    return uv, z
+    return camera.project(pc, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
 
 
 def backproject(kp: Keypoints, K: np.ndarray, T_c2w: np.ndarray) -> np.ndarray:
