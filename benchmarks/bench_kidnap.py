@@ -24,7 +24,7 @@ What the numbers mean:
   so that the floor under the box cannot count as box. Coverage = the fraction of kept points with
   a vertex of the run's mesh.ply within --tol (0.05 m). The check passes when old-place coverage is
   near 0 and new-place coverage near 1. No alignment: frame 0 of a run takes its ground-truth pose
-  and bundle adjustment keeps the first keyframe fixed (slam.mapper / mapping.fix_first_pose), so
+  and bundle adjustment keeps the first keyframe fixed (the backend's, and slam.mapper's), so
   the SLAM world frame is the synthetic world frame.
 - **ATE cm**: ATE RMSE of traj_est.txt against the ground truth (eval.ate, the run's alignment).
 - **updates**: classifier updates the run made (dynamic mode; "—" for static).

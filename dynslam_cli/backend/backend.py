@@ -153,9 +153,7 @@ class Backend:
                          self.cfg.huber_px, self.cfg.min_matches, seed=index)
         if tr.lost:
             return None
-        ref = int(self.frame_ref[-1])
-        self.frame_rel[-1] = tr.pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ tr.pose
-        self.last_pose = tr.pose.copy()
+        self.correct_last(tr.pose)
         if self._pending is not None and self._pending[0] == index:
             self._pending = (index, tr.pose.copy(), kp, tr.lm, tr.kp)
         return tr.pose.copy()

@@ -22,12 +22,13 @@ def refresh_keyframes(slam, motion) -> int:
     (a :class:`~dynslam_cli.motion.module.MotionModule`), and drop the backend landmarks made on
     instances now called dynamic; returns rays masked."""
     masked = 0
-    for fid in motion.keyframes:
-        slam.forget_landmarks(fid, motion.keyframe_dynamic_ids(fid))
+    dynamic = {fid: motion.keyframe_dynamic_ids(fid) for fid in motion.keyframes}  # one classifier pass
+    for fid, dyn_ids in dynamic.items():
+        slam.forget_landmarks(fid, dyn_ids)
     for kf in slam.keyframes:
-        if kf.frame_id not in motion.keyframes:
+        if kf.frame_id not in dynamic:
             continue
-        dyn_ids = motion.keyframe_dynamic_ids(kf.frame_id)
+        dyn_ids = dynamic[kf.frame_id]
         kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
         if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
             kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)

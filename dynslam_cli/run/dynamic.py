@@ -22,6 +22,7 @@ import numpy as np
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
 from dynslam_cli.motion.forget import carve, forget_departed, near_ids, refresh_keyframes
 from dynslam_cli.motion.stayed import stayed_put
+from dynslam_cli.slam.frontend import first_pose
 from dynslam_cli.utils.io import atomic_path, write_text_atomic
 
 # A pixel is inconsistent only when no rendered depth within this many pixels (at check resolution) agrees with the
@@ -48,9 +49,6 @@ class DynamicLoop:
         self.mask_dir = mask_dir
         self.records: list[dict] = []
         self.width = int(intrinsics.width)
-        self.check_radius = CHECK_RADIUS
-        self.warmup = CHECK_WARMUP
-        self.retrack_fraction = RETRACK_FRACTION
         self.still_frames = int(cfg.run.still_frames)
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
@@ -59,10 +57,7 @@ class DynamicLoop:
 
     # ------------------------------------------------------------------ per frame
     def _guess(self, frame) -> np.ndarray:
-        if self.slam.n_frames == 0:
-            gt = getattr(frame, "pose_c2w", None)
-            return np.array(gt, np.float64) if gt is not None else np.eye(4)
-        return self.slam.predict_pose()
+        return first_pose(frame) if self.slam.n_frames == 0 else self.slam.predict_pose()
 
     def process(self, frame, stamp: str) -> dict:
         """Process one frame; returns the per-component timings (ms) and what happened."""
@@ -73,7 +68,7 @@ class DynamicLoop:
         t_render = 0.0
         record = None
         retracked = False
-        if self.slam.n_frames > max(1, self.warmup):  # a map built from one frame is too immature to judge
+        if self.slam.n_frames > max(1, CHECK_WARMUP):  # a map built from one frame is too immature to judge
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
@@ -82,8 +77,8 @@ class DynamicLoop:
             judged_depth, forward_ok = checkable_depth(frame.depth, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
                                                        self.mm.m.depth_threshold)
             judged = dataclasses.replace(frame, depth=judged_depth)
-            if self.check_radius > 0:
-                r_depth = closest_rendered(r_depth, judged.depth, self.check_radius)
+            if CHECK_RADIUS > 0:
+                r_depth = closest_rendered(r_depth, judged.depth, CHECK_RADIUS)
             before = inst.static_mask.copy()
             still = stayed_put(frame.depth, inst.ids, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
                                self.slam.n_frames - 1, self.still_frames, self.still_tolerance,
@@ -91,10 +86,10 @@ class DynamicLoop:
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still)
             forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w, self.slam.keyframes,
                             self.slam.intr, self.mm.m.depth_threshold, self.forget_radius)
-            if record is not None and self.retrack_fraction > 0:
+            if record is not None and RETRACK_FRACTION > 0:
                 valid = np.asarray(frame.depth) > 0
                 newly = int((before & ~inst.static_mask & valid).sum())
-                if newly > self.retrack_fraction * max(1, int(valid.sum())):
+                if newly > RETRACK_FRACTION * max(1, int(valid.sum())):
                     tr = self.slam.retrack(frame, inst.static_mask)
                     t_track += tr.ms
                     retracked = True

@@ -18,7 +18,7 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.icp import icp_depth
 from dynslam_cli.geometry.lie import inv_np, orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses
-from dynslam_cli.map.render import render_rays, sample_depths
+from dynslam_cli.map.render import n_samples, render_rays, sample_depths
 from dynslam_cli.slam.keyframes import valid_pixels
 from dynslam_cli.slam.state import EDGE_MARGIN, MIN_PIXELS, CurrentFrame, SlamState
 
@@ -27,8 +27,6 @@ log = logging.getLogger(__name__)
 # A tracked pose moving more than this (m) from its initial guess is divergence; an ICP initial guess farther than
 # this from the constant-velocity one is not used.
 MAX_JUMP = 0.3
-# Dense tracking draws new rays every iteration (Co-SLAM) and returns the lowest-loss pose seen.
-RESAMPLE_RAYS = True
 # ICP initial guess (tracking.icp_init): pyramid downsampling factors, coarse to fine (640x480 -> 80x60, 160x120,
 # 320x240), and Gauss-Newton iterations per level.
 ICP_FACTORS = (8, 4, 2)
@@ -147,11 +145,8 @@ class Frontend:
         ``tvalid``: (pose, lowest loss, why it diverged or "")."""
         s = self.s
         tc = s.cfg.tracking
-        R, S = tc.n_rays, s.cfg.map.SAMPLES_FREE + s.cfg.map.samples_surface
-        if RESAMPLE_RAYS:
-            idx = torch.from_numpy(s.sample(tvalid, iters * R)).to(s.device)
-        else:
-            idx = torch.from_numpy(np.tile(s.sample(tvalid, R), iters)).to(s.device)
+        R, S = tc.n_rays, n_samples(s.cfg.map)
+        idx = torch.from_numpy(s.sample(tvalid, iters * R)).to(s.device)  # new rays every iteration (Co-SLAM)
         dirs_c = s.dirs[idx].view(iters, R, 3)
         rgb_t = cur.rgb[idx].view(iters, R, 3)
         d_t = cur.depth[idx]
@@ -182,8 +177,7 @@ class Frontend:
                 opt.step()
         finally:
             s.set_map_grad(True)
-        pose = init @ se3_exp(best_xi.double().cpu()).numpy() if s.device.type != "cpu" else \
-            init @ se3_exp(best_xi.double()).numpy()
+        pose = init @ se3_exp(best_xi.double().cpu()).numpy()
         jump = float(np.linalg.norm(pose[:3, 3] - init[:3, 3]))
         if not bad and (not np.all(np.isfinite(pose)) or best_loss == float("inf")):
             bad = "non-finite pose"

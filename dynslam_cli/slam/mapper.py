@@ -20,7 +20,7 @@ from dynslam_cli.geometry.camera import backproject
 from dynslam_cli.geometry.lie import orthonormalize, se3_exp
 from dynslam_cli.map.losses import ray_losses, smoothness_points, smoothness_tv
 from dynslam_cli.map.model import NeuralMap
-from dynslam_cli.map.render import render_rays, sample_depths
+from dynslam_cli.map.render import n_samples, render_rays, sample_depths
 from dynslam_cli.slam.keyframes import Keyframe, subsample_depth, valid_pixels
 from dynslam_cli.slam.state import EDGE_MARGIN, CurrentFrame, SlamState
 
@@ -197,7 +197,7 @@ class Mapper:
         optimise_poses = (not first) and bool(opt_mask.sum() > 0) and lr_pose > 0 and s.backend is None
         xi = torch.zeros(n_p, 6, device=s.device, requires_grad=optimise_poses)
         pose_opt = torch.optim.Adam([xi], lr=lr_pose) if optimise_poses else None
-        S = mp.SAMPLES_FREE + mp.samples_surface
+        S = n_samples(mp)
         # sample all iterations' rays up front
         cur_idx = torch.from_numpy(cur_idx_np).to(s.device) if n_cur else None
         parts_dirs, parts_rgb, parts_d, parts_owner = [], [], [], []

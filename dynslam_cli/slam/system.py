@@ -81,7 +81,6 @@ class SLAM(SlamState):
         if cur is None or cur.idx != self.n_frames - 1:
             raise DynslamError("SLAM.map() must follow track() of the same frame")
         self.frontend.set_mask(cur, mask)
-        self.backend_keyframe = False
         res, self.backend_keyframe = self.mapper.map(frame, cur, instance_ids)
         return res
 
