@@ -100,6 +100,15 @@ def _corner_weights(f0, f1, f2):
     return (q00 * e2, q10 * e2, q01 * e2, q11 * e2, q00 * f2, q10 * f2, q01 * f2, q11 * f2)
 
 
+@njit(inline="always")
+def _interpolate(table, lv, ids, ws, f):
+    """Feature ``f`` of level ``lv`` at a point: the corners' values weighted, summed in corner order."""
+    acc = np.float32(0.0)
+    for k in range(8):
+        acc += ws[k] * table[lv, ids[k], f]
+    return acc
+
+
 @njit(parallel=True, fastmath=False, cache=True)
 def forward_points(x, table, res, dense, out):
     """out[n, l*F + f] = trilinear interpolation of level l; parallel over points."""
@@ -107,22 +116,12 @@ def forward_points(x, table, res, dense, out):
     n_lv, tsize, nf = table.shape
     mask = np.int64(tsize - 1)
     for n in prange(n_pts):
-        x0 = _clamp01(x[n, 0])
-        x1 = _clamp01(x[n, 1])
-        x2 = _clamp01(x[n, 2])
         for lv in range(n_lv):
             r = res[lv]
-            rf = np.float32(r)
-            c0, f0 = _cell_frac(x0, rf, r)
-            c1, f1 = _cell_frac(x1, rf, r)
-            c2, f2 = _cell_frac(x2, rf, r)
-            ids = _corner_indices(c0, c1, c2, dense[lv] != 0, r + 1, mask)
+            ids, f0, f1, f2 = _point_corners(x, n, np.float32(r), r, dense[lv] != 0, mask)
             ws = _corner_weights(f0, f1, f2)
             for f in range(nf):
-                acc = np.float32(0.0)
-                for k in range(8):
-                    acc += ws[k] * table[lv, ids[k], f]
-                out[n, lv * nf + f] = acc
+                out[n, lv * nf + f] = _interpolate(table, lv, ids, ws, f)
 
 
 @njit(parallel=True, fastmath=False, cache=True)
@@ -139,10 +138,7 @@ def forward_levels(x, table, res, dense, out):
             ids, f0, f1, f2 = _point_corners(x, n, rf, r, dn, mask)
             ws = _corner_weights(f0, f1, f2)
             for f in range(nf):
-                acc = np.float32(0.0)
-                for k in range(8):
-                    acc += ws[k] * table[lv, ids[k], f]
-                out[n, lv * nf + f] = acc
+                out[n, lv * nf + f] = _interpolate(table, lv, ids, ws, f)
 
 
 @njit(parallel=True, fastmath=False, cache=True)
