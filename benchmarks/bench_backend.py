@@ -12,7 +12,9 @@ for bundle adjustment, landmarks at the end.
 Sequences: ``bonn`` (../shared/data/bonn_crowd_150_449_s2 with configs/bonn.yaml), or a folder
 (a synthetic scene rendered by ``dynslam synth``, a TUM/Bonn folder).  Masks: ``none`` (all
 pixels), ``gt`` (the ground-truth motion masks of synthetic scenes), ``yolo`` (people found by
-../shared/models/yolov8n-seg_deq_fp32.onnx, dilated 5 px).
+../shared/models/yolov8n-seg_deq_fp32.onnx, dilated 5 px), ``run:DIR`` (the motion masks a
+``dynslam run --save-masks`` wrote into DIR/masks/, dilated by motion.mask_dilation as the run
+dilated them: the backend on exactly the masks the system gave it, without the system's wiring).
 """
 
 from __future__ import annotations
@@ -53,6 +55,25 @@ def person_masker(dilate: int = 5):
     return mask
 
 
+def run_masker(folder: Path, dilation: float):
+    """stamp -> H×W bool: the saved motion mask of that frame, dilated as the run dilated it."""
+    import cv2
+
+    from dynslam_cli.motion.module import dilation_radius
+
+    if not folder.is_dir():
+        raise SystemExit(f"no saved masks in {folder} (run dynslam run --save-masks)")
+
+    def mask(stamp: str) -> np.ndarray:
+        m = cv2.imread(str(folder / f"{stamp}.png"), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise SystemExit(f"missing mask {folder / (stamp + '.png')}")
+        r = dilation_radius(dilation, m.shape[1])
+        return cv2.dilate((m > 0).astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+    return mask
+
+
 def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: int | None) -> dict:
     from dynslam_cli.backend.backend import Backend
     from dynslam_cli.backend.config import BackendConfig
@@ -72,6 +93,8 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
     k = seq.intrinsics
     be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg)
     masker = person_masker() if masks == "yolo" else None
+    if masks.startswith("run:"):
+        masker = run_masker(Path(masks[4:]) / "masks", cfg.motion.mask_dilation)
     online, track_ms, ba_ms, lost, events = [], [], [], 0, []
     mask_ms = []
     for f in seq:
@@ -82,7 +105,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
             static = ~f.dynamic_mask
         elif masker is not None:
             t0 = time.perf_counter()
-            static = ~masker(f.rgb)
+            static = ~masker(f.rgb) if not masks.startswith("run:") else ~masker(seq.stamps[f.index])
             mask_ms.append((time.perf_counter() - t0) * 1000)
         depth = f.depth_full if depth_kind == "full" and f.depth_full is not None else f.depth
         out = be.track(f.index, f.rgb, depth, static)
@@ -110,7 +133,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seqs", default="bonn", help="comma-separated: bonn or sequence folders")
-    ap.add_argument("--masks", default="none,yolo", help="comma-separated, of none, gt, yolo")
+    ap.add_argument("--masks", default="none,yolo", help="comma-separated, of none, gt, yolo, run:DIR")
     ap.add_argument("--set", action="append", default=[], help="BackendConfig override key=value (repeatable)")
     ap.add_argument("--depth", choices=("cut", "full"), default="cut",
                     help="depth as the config cuts it (data.max_depth) or all of it")

@@ -1,0 +1,40 @@
+"""The saved-mask reader of benchmarks/bench_backend.py (``--masks run:DIR``; the benchmark itself is run by hand)."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_backend.py"
+_spec = importlib.util.spec_from_file_location("bench_backend", SCRIPT)
+B = importlib.util.module_from_spec(_spec)
+sys.modules["bench_backend"] = B
+_spec.loader.exec_module(B)
+
+
+class TestRunMasker:
+    def test_dilates_the_saved_mask_like_the_run(self, tmp_path):
+        (tmp_path / "masks").mkdir()
+        m = np.zeros((48, 64), np.uint8)
+        m[20, 30] = 255
+        cv2.imwrite(str(tmp_path / "masks" / "1.5.png"), m)
+        mask = B.run_masker(tmp_path / "masks", 2 / 64)("1.5")  # 2 px at 64 px width
+        assert mask.shape == (48, 64) and mask.dtype == bool
+        assert mask.sum() == 25 and mask[18:23, 28:33].all()  # the square the run's static mask leaves out
+
+    def test_no_dilation(self, tmp_path):
+        (tmp_path / "masks").mkdir()
+        m = np.zeros((8, 8), np.uint8)
+        m[1, 1] = 255
+        cv2.imwrite(str(tmp_path / "masks" / "0.png"), m)
+        assert B.run_masker(tmp_path / "masks", 0.0)("0").sum() == 1
+
+    def test_missing_folder_and_frame_are_clear_errors(self, tmp_path):
+        with pytest.raises(SystemExit, match="no saved masks"):
+            B.run_masker(tmp_path / "absent", 0.01)
+        (tmp_path / "masks").mkdir()
+        with pytest.raises(SystemExit, match="missing mask"):
+            B.run_masker(tmp_path / "masks", 0.01)("7.0")
