@@ -26,9 +26,8 @@ from dynslam_cli.slam.state import EDGE_MARGIN, CurrentFrame, SlamState
 
 # Margin (m) added around the first frame's points when map.bounds is null.
 AUTO_MARGIN = 2.0
-# Rays per mapping iteration on the first frame (Co-SLAM: 2048).  Half of them reach the same map after
-# mapping.first_iters steps at 0.6 of the time (docs/experiments.md, "Frame 0 in seconds").
-FIRST_RAYS = 1024
+# Rays per mapping iteration on the first frame.
+FIRST_RAYS = 2048
 # At least this many of the BA rays come from the current frame (Co-SLAM min_pixels_cur).
 MIN_RAYS_CURRENT = 100
 # Bundle adjustment steps the pose optimiser once every N iterations on the gradients summed over them (Co-SLAM
