@@ -118,7 +118,7 @@ def test_state_dict_round_trip_continues_identically():
     resumed = Backend(INTR, CFG)
     resumed.load_state_dict(state)
     rest = _run(resumed, FRAMES[5:], start=5)
-    for a, b in zip(ref[5:], rest):
+    for a, b in zip(ref[5:], rest, strict=False):
         assert np.array_equal(a.pose_c2w, b.pose_c2w) and a.keyframe == b.keyframe and a.inliers == b.inliers
     assert np.array_equal(straight.trajectory(), resumed.trajectory())
 
@@ -211,7 +211,7 @@ def test_tracks_the_same_with_the_landmarks_compacted_every_frame(monkeypatch):
     be2 = Backend(INTR, CFG)
     outs = _run(be2, FRAMES)
     assert len(be2.lm) < never and be2.lm.alive.sum() == be.lm.alive.sum()  # culled rows went
-    for o, T in zip(outs, ref):
+    for o, T in zip(outs, ref, strict=False):
         assert np.array_equal(o.pose_c2w, T)
     assert np.array_equal(be2.trajectory(), be.trajectory())
     for k in ("pos", "des", "origin", "first_kf", "visible", "found"):
@@ -222,13 +222,13 @@ def test_frame_rows_append_and_survive_a_state_round_trip():
     be = Backend(INTR, CFG)
     rng = np.random.default_rng(0)
     refs, rels = rng.integers(-1, 5, 150), rng.normal(size=(150, 4, 4))
-    for r, T in zip(refs[:100], rels[:100]):  # past the first capacity (64)
+    for r, T in zip(refs[:100], rels[:100], strict=False):  # past the first capacity (64)
         be._append_frame(int(r), T)
     assert np.array_equal(be.frame_ref, refs[:100]) and np.array_equal(be.frame_rel, rels[:100])
     be.frame_rel[-1] = np.eye(4)  # the last row can be replaced in place (retrack, commit)
     other = Backend(INTR, CFG)
     other.load_state_dict(be.state_dict())
-    for r, T in zip(refs[100:], rels[100:]):
+    for r, T in zip(refs[100:], rels[100:], strict=False):
         other._append_frame(int(r), T)
     assert np.array_equal(other.frame_ref, refs) and np.array_equal(other.frame_rel[100:], rels[100:])
     assert np.array_equal(other.frame_rel[99], np.eye(4)) and np.array_equal(other.frame_rel[:99], rels[:99])

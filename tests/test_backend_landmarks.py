@@ -81,7 +81,7 @@ def test_compact_drops_dead_rows_and_keeps_every_live_landmark():
     lm.kill(dead)
     before = lm.state_dict()
     live = np.flatnonzero(~dead)
-    obs_before = {(int(k), int(j)): i for i, (k, j) in enumerate(zip(before["obs_kf"], before["obs_lm"]))}
+    obs_before = {(int(k), int(j)): i for i, (k, j) in enumerate(zip(before["obs_kf"], before["obs_lm"], strict=False))}
     assert lm.compact() is None and len(lm) == 10  # 3 of 10 dead: under the threshold (and the minimum)
     remap = lm.compact(force=True)
     assert len(lm) == lm.n_alive == 7 and np.array_equal(remap[live], np.arange(7)) and (remap[dead] == -1).all()
@@ -89,7 +89,7 @@ def test_compact_drops_dead_rows_and_keeps_every_live_landmark():
         assert np.array_equal(getattr(lm, k), before[k][live]), k
     assert lm.moving.sum() == 1 and lm.moving[remap[7]]
     assert len(lm.obs_kf) == len(before["obs_kf"])  # the dead had none left
-    for i, (k, j) in enumerate(zip(lm.obs_kf, lm.obs_lm)):  # each observation, now of the renumbered landmark
+    for i, (k, j) in enumerate(zip(lm.obs_kf, lm.obs_lm, strict=False)):  # each observation, now of the renumbered landmark
         o = obs_before[(int(k), int(live[j]))]
         for key in ("obs_uv", "obs_depth", "obs_octave"):
             assert np.array_equal(getattr(lm, key)[i], before[key][o]), key

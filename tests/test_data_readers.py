@@ -61,7 +61,7 @@ def test_bonn_gt_is_interpolated_between_neighbours(bonn_clip: Path):
 
     seq = open_sequence(str(bonn_clip), load_config("bonn", "crowd", overrides=["data.frames=5"]))
     gt_t, gt_T = read_trajectory(bonn_clip / "groundtruth.txt")
-    for t, T in zip(seq.timestamps, seq.gt_poses):
+    for t, T in zip(seq.timestamps, seq.gt_poses, strict=False):
         k = np.searchsorted(gt_t, t)
         a = (t - gt_t[k - 1]) / (gt_t[k] - gt_t[k - 1])
         assert 0 < a < 1

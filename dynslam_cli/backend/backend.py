@@ -217,7 +217,7 @@ class Backend:
 
     def keyframe_poses(self) -> dict:
         """Frame index → the keyframe's current (bundle-adjusted) camera-to-world pose."""
-        return {int(f): p.copy() for f, p in zip(self.kf_frame, self.kf_pose)}
+        return {int(f): p.copy() for f, p in zip(self.kf_frame, self.kf_pose, strict=False)}
 
     def state_dict(self) -> dict:
         """Everything needed to continue identically (numpy arrays only)."""

@@ -88,7 +88,7 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     values = gtsam.Values()
     for k in kfs:
         values.insert(X(k), gtsam.Pose3(np.asarray(poses[int(k)], np.float64)))
-    for j, p in zip(ids[multi], pos[multi]):
+    for j, p in zip(ids[multi], pos[multi], strict=False):
         values.insert(L(j), np.asarray(p, np.float64))
     in_graph = multi[row[obs_lm[sel]]]
     factors = {}

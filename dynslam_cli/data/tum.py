@@ -445,7 +445,7 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
         FrameRecord(timestamp=r.timestamp, rgb=folder / r.file, depth=folder / d.file, pose_c2w=p,
                     instances=inst_paths[n] if inst_paths else None,
                     dynamic=dyn_paths[n] if dyn_paths else None, source_index=k, stamp=r.stamp)
-        for n, ((r, d), p, k) in enumerate(zip(pairs_cut, poses, keep))
+        for n, ((r, d), p, k) in enumerate(zip(pairs_cut, poses, keep, strict=False))
     ]
     return Sequence(name=name, dataset=dataset, path=folder, spec=spec, intrinsics=intr,
                     distortion=distortion, records=records, depth_scale=depth_scale,

@@ -122,7 +122,7 @@ def icp_depth(ref_depth: np.ndarray, cur_depth: np.ndarray, intr, init: Optional
     T = np.eye(4) if init is None else np.array(init, np.float64)
     inl, frac, rmse = 0, 0.0, float("inf")
     ref_pyr, cur_pyr = depth_pyramid(ref_depth, factors), depth_pyramid(cur_depth, factors)
-    for factor, n_it in zip(factors, iters):
+    for factor, n_it in zip(factors, iters, strict=False):
         lfx, lfy, lcx, lcy = level_intrinsics(fx, fy, cx, cy, factor)
         rd, cd = ref_pyr[int(factor)], cur_pyr[int(factor)]
         if max_depth > 0:

@@ -111,7 +111,7 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
 
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
     q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
-    for s, T, qq in zip(stamps, poses, q):
+    for s, T, qq in zip(stamps, poses, q, strict=False):
         t = T[:3, 3]
         lines.append(f"{s} {t[0]:.7f} {t[1]:.7f} {t[2]:.7f} {qq[0]:.7f} {qq[1]:.7f} {qq[2]:.7f} {qq[3]:.7f}")
     return write_text_atomic(path, "\n".join(lines) + "\n")

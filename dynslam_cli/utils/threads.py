@@ -17,8 +17,9 @@ dynslam's own parallelism uses processes.
 Determinism: with the same seed, thread count and machine a run is bit-for-bit repeatable
 (tests/test_determinism.py).  :func:`seed_everything` switches torch to its deterministic
 algorithms: on CPU, autograd's backward of indexing with repeated indices (bundle adjustment
-gathers with ``index_select`` for that reason, but other indexing remains) otherwise scatter-adds with atomic float adds from several threads, in an order that
-changes from run to run.  :func:`set_threads` picks the numba layer before it starts numba's pool.
+gathers with ``index_select`` for that reason, but other indexing remains) otherwise scatter-adds
+with atomic float adds from several threads, in an order that changes from run to run.
+:func:`set_threads` picks the numba layer before it starts numba's pool.
 """
 
 from __future__ import annotations
