@@ -55,6 +55,17 @@ def person_masker(dilate: int = 5):
     return mask
 
 
+def run_dilation(run_dir: Path, default: float) -> float:
+    """motion.mask_dilation of the run (its saved config.yaml), else ``default``."""
+    import yaml
+
+    cfg_file = run_dir / "config.yaml"
+    if not cfg_file.is_file():
+        return float(default)
+    motion = (yaml.safe_load(cfg_file.read_text()) or {}).get("motion") or {}
+    return float(motion.get("mask_dilation", default))
+
+
 def run_masker(folder: Path, dilation: float):
     """stamp -> H×W bool: the saved motion mask of that frame, dilated as the run dilated it."""
     import cv2
@@ -94,7 +105,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
     be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg)
     masker = person_masker() if masks == "yolo" else None
     if masks.startswith("run:"):
-        masker = run_masker(Path(masks[4:]) / "masks", cfg.motion.mask_dilation)
+        masker = run_masker(Path(masks[4:]) / "masks", run_dilation(Path(masks[4:]), cfg.motion.mask_dilation))
     online, track_ms, ba_ms, lost, events = [], [], [], 0, []
     mask_ms = []
     for f in seq:

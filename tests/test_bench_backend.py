@@ -38,3 +38,12 @@ class TestRunMasker:
         (tmp_path / "masks").mkdir()
         with pytest.raises(SystemExit, match="missing mask"):
             B.run_masker(tmp_path / "masks", 0.01)("7.0")
+
+
+class TestRunDilation:
+    def test_read_from_the_runs_config_else_the_default(self, tmp_path):
+        assert B.run_dilation(tmp_path, 0.008) == 0.008  # no config.yaml
+        (tmp_path / "config.yaml").write_text("motion:\n  mask_dilation: 0.02\n  segmenter: geometric\n")
+        assert B.run_dilation(tmp_path, 0.008) == 0.02
+        (tmp_path / "config.yaml").write_text("run:\n  seed: 1\n")
+        assert B.run_dilation(tmp_path, 0.008) == 0.008
