@@ -57,12 +57,9 @@ def person_masker(dilate: int = 5):
 
 def run_dilation(run_dir: Path, default: float) -> float:
     """motion.mask_dilation of the run (its saved config.yaml), else ``default``."""
-    import yaml
+    from dynslam_cli.eval.runs import read_run_config
 
-    cfg_file = run_dir / "config.yaml"
-    if not cfg_file.is_file():
-        return float(default)
-    motion = (yaml.safe_load(cfg_file.read_text()) or {}).get("motion") or {}
+    motion = read_run_config(run_dir).get("motion") or {}
     return float(motion.get("mask_dilation", default))
 
 
@@ -103,9 +100,13 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
         bcfg = dataclasses.replace(bcfg, **{keys[-1]: type(getattr(bcfg, keys[-1]))(value)})
     k = seq.intrinsics
     be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg)
-    masker = person_masker() if masks == "yolo" else None
-    if masks.startswith("run:"):
-        masker = run_masker(Path(masks[4:]) / "masks", run_dilation(Path(masks[4:]), cfg.motion.mask_dilation))
+    masker = None  # frame -> H×W bool, True where something moves
+    if masks == "yolo":
+        people = person_masker()
+        masker = lambda f: people(f.rgb)  # noqa: E731
+    elif masks.startswith("run:"):
+        saved = run_masker(Path(masks[4:]) / "masks", run_dilation(Path(masks[4:]), cfg.motion.mask_dilation))
+        masker = lambda f: saved(seq.stamps[f.index])  # noqa: E731
     online, track_ms, ba_ms, lost, events = [], [], [], 0, []
     mask_ms = []
     for f in seq:
@@ -116,7 +117,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
             static = ~f.dynamic_mask
         elif masker is not None:
             t0 = time.perf_counter()
-            static = ~masker(f.rgb) if not masks.startswith("run:") else ~masker(seq.stamps[f.index])
+            static = ~masker(f)
             mask_ms.append((time.perf_counter() - t0) * 1000)
         depth = f.depth_full if depth_kind == "full" and f.depth_full is not None else f.depth
         out = be.track(f.index, f.rgb, depth, static)
