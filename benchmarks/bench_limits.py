@@ -509,7 +509,7 @@ def backend_rows(cfg, intr, frames, reps, peaks) -> list[dict]:
     from dynslam_cli.backend.tracking import optimize_pose
 
     f = frames[0]
-    det = Detector(cfg.backend.features, intr.width, intr.height)
+    det = Detector(cfg.backend.features, intr.width, intr.height, depth_noise=cfg.backend.depth_noise)
     depth = f.depth_full if f.depth_full is not None else f.depth
     rows = [make_row(f"ORB extraction {intr.width}x{intr.height}", "cpu",
                      median_ms(lambda: det.detect(f.rgb, depth), reps, 1),

@@ -49,7 +49,7 @@ def test_ba_lowers_the_error_and_keeps_fixed_poses_fixed():
     uv = uv.copy()
     uv[bad] += rng.choice([-1, 1], (bad.sum(), 2)) * rng.uniform(15, 40, (bad.sum(), 2))
     res = local_bundle_adjustment(CAM, start, [2, 3, 4], [0, 1], ids, pos0, kf, lm, uv, d,
-                                  np.zeros(len(kf), np.int64), huber=2.8)
+                                  np.zeros(len(kf), np.int64), 0.012 * d * d, huber=2.8)
     assert set(res.poses) == {2, 3, 4}  # the fixed keyframes are not returned (not moved)
     assert res.cost < 0.1 * res.cost0
     for k in (2, 3, 4):
@@ -64,6 +64,6 @@ def test_ba_without_fixed_keyframes_holds_the_first_of_the_window():
     truth, X, (kf, lm, uv, d), rng = _window(n_kf=3, seed=1)
     start = {0: truth[0], 1: _perturb(truth[1], rng, 0.01), 2: _perturb(truth[2], rng, 0.01)}
     res = local_bundle_adjustment(CAM, start, [0, 1, 2], [], np.arange(len(X)), X.copy(), kf, lm, uv, d,
-                                  np.zeros(len(kf), np.int64), huber=2.8)
+                                  np.zeros(len(kf), np.int64), 0.012 * d * d, huber=2.8)
     assert set(res.poses) == {1, 2}
     assert all(np.linalg.norm(res.poses[k][:3, 3] - truth[k][:3, 3]) < 0.004 for k in (1, 2))

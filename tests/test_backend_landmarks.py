@@ -9,7 +9,7 @@ from dynslam_cli.backend.landmarks import LandmarkMap
 def _kps(n, seed=0):
     rng = np.random.default_rng(seed)
     return Keypoints(rng.uniform(0, 300, (n, 2)), rng.integers(0, 256, (n, 32), dtype=np.uint8),
-                     rng.uniform(1, 3, n), np.zeros(n, np.int64))
+                     rng.uniform(1, 3, n), np.zeros(n, np.int64), np.full(n, 0.01))
 
 
 def _map_with(n=5):

@@ -27,7 +27,7 @@ def _scene(n=300, seed=0):
     X = pc @ truth[:3, :3].T + truth[:3, 3]
     uv, z = project(truth, X, CAM.K)
     kp = Keypoints(uv + rng.normal(0, 0.5, uv.shape), rng.integers(0, 256, (n, 32), dtype=np.uint8),
-                   z * (1 + rng.normal(0, 0.002, n)), np.zeros(n, np.int64))
+                   z * (1 + rng.normal(0, 0.002, n)), np.zeros(n, np.int64), 0.002 * z)
     return truth, X, kp, rng
 
 
@@ -87,3 +87,26 @@ def test_track_frame_relocalises_far_from_the_guess():
     tr = track_frame(CAM, guess, kp, ids, X, kp.des, one, 15.0, 2.8, 20, seed=0)
     assert not tr.lost and tr.reason == "relocalised"
     assert _errors(tr.pose, truth)[0] < 0.005
+
+
+class TestInformation:
+    def test_known_values(self):
+        from dynslam_cli.backend.tracking import information
+
+        info = information(CAM, np.array([2.0, 0.0]), np.array([0.04, 0.0]), np.array([2, 0]))
+        assert np.allclose(info[:, :2], [[1.2 ** -4] * 2, [1.0, 1.0]])
+        # the disparity bf/d: sigma bf * 0.04 / 2^2 px; no depth, no information
+        assert np.isclose(info[0, 2], 1.0 / (CAM.bf * 0.04 / 4.0) ** 2) and info[1, 2] == 0.0
+
+    def test_accurate_depth_is_used_apart_from_noisy_pixels(self):
+        """Pixels 2 px noisy, depth 0.1 % accurate: trusting the depth as modelled recovers the pose
+        better than treating it as loose (the pixel and the depth noise are independent)."""
+        truth, X, kp, rng = _scene(n=200, seed=3)
+        kp.uv[:] = project(truth, X, CAM.K)[0] + rng.normal(0, 2.0, kp.uv.shape)
+        kp.depth[:] = project(truth, X, CAM.K)[1] * (1 + rng.normal(0, 0.001, len(X)))
+        start = _pose(0.0, 0.0, [0.22, -0.08, 0.28])
+        errs = {}
+        for name, sig in (("modelled", 0.001 * kp.depth), ("loose", 0.1 * kp.depth)):
+            kp.dsig[:] = sig
+            errs[name] = _errors(optimize_pose(CAM, start, X, kp, huber=2.8)[0], truth)[0]
+        assert errs["modelled"] < 0.5 * errs["loose"], errs

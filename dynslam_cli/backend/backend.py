@@ -53,7 +53,7 @@ class Backend:
         fx, fy, cx, cy, w, h = intrinsics
         self.cfg = cfg or BackendConfig()
         self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.BASELINE)
-        self.detector = Detector(self.cfg.features, int(w), int(h))
+        self.detector = Detector(self.cfg.features, int(w), int(h), depth_noise=self.cfg.depth_noise)
         self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
         self.lm = LandmarkMap()
         self.kf_frame = np.zeros(0, np.int64)
@@ -310,7 +310,7 @@ class Backend:
         fixed += [0] if 0 in local else []
         poses = {int(k): self.kf_pose[k] for k in set(optimise) | set(fixed)}
         res = local_bundle_adjustment(self.cam, poses, optimise, fixed, ids, self.lm.pos[ids], self.lm.obs_kf,
-                                      self.lm.obs_lm, self.lm.obs_uv, self.lm.obs_depth, self.lm.obs_octave,
+                                      self.lm.obs_lm, self.lm.obs_uv, self.lm.obs_depth, self.lm.obs_octave, self.lm.obs_dsig,
                                       self.cfg.huber_px)
         for k, T in res.poses.items():
             self.kf_pose[k] = T

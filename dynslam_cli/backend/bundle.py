@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dynslam_cli.backend.features import SCALE
-from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, Camera
+from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, Camera, information
 
 
 @dataclass
@@ -31,23 +31,22 @@ class BundleResult:
 
 
 def observation_chi2(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                     octave: np.ndarray) -> np.ndarray:
+                     octave: np.ndarray, dsig: np.ndarray) -> np.ndarray:
     """Whitened squared residual of each observation: camera ``Tcw[i]`` (world-to-camera, M×4×4)
-    sees world point ``X[i]`` at ``uv[i]`` with ``depth[i]`` (0 = none)."""
+    sees world point ``X[i]`` at ``uv[i]`` with ``depth[i]`` (0 = none) of standard deviation ``dsig[i]``."""
     pc = np.einsum("mij,mj->mi", Tcw[:, :3, :3], X) + Tcw[:, :3, 3]
     z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
     u = cam.fx * pc[:, 0] / z + cam.cx
     v = cam.fy * pc[:, 1] / z + cam.cy
-    stereo = depth > 0
-    eu = np.where(stereo, (uv[:, 0] - cam.bf / np.where(stereo, depth, 1.0)) - (u - cam.bf / z), 0.0)
-    out = ((uv[:, 0] - u) ** 2 + (uv[:, 1] - v) ** 2 + eu ** 2) / SCALE ** (2.0 * octave)
+    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, cam.bf / np.where(depth > 0, depth, 1.0) - cam.bf / z], 1)
+    out = (e * e * information(cam, depth, dsig, octave)).sum(1)
     out[pc[:, 2] <= 1e-6] = np.inf
     return out
 
 
 def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.ndarray, pos: np.ndarray,
                             obs_kf: np.ndarray, obs_lm: np.ndarray, obs_uv: np.ndarray, obs_depth: np.ndarray,
-                            obs_octave: np.ndarray, huber: float, iters: tuple = (5, 10)) -> BundleResult:
+                            obs_octave: np.ndarray, obs_dsig: np.ndarray, huber: float, iters: tuple = (5, 10)) -> BundleResult:
     """Optimise keyframes ``optimise`` (ids into ``poses``: camera-to-world 4×4) and landmarks
     ``ids`` (world positions ``pos``), keyframes ``fixed`` held where they are.  Observations
     (``obs_*``) of other keyframes or landmarks are ignored.  ``huber``: kernel width in pixels
@@ -79,8 +78,17 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     th_m = huber * np.sqrt(CHI2_MONO / CHI2_STEREO)
     huber_s = gtsam.noiseModel.mEstimator.Huber.Create(th)
     huber_m = gtsam.noiseModel.mEstimator.Huber.Create(th_m)
-    noise_s = [gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, SCALE ** o))
-               for o in range(16)]
+    models = {}
+
+    def noise_s(o, sd):
+        """(u_L, u_R, v) with u_R = u - disparity: the pixel's and the disparity's noise (sd px) independent."""
+        key = (int(o), int(round(np.log(sd) * 16)))
+        if key not in models:
+            s2, t2 = SCALE ** (2.0 * o), float(np.exp(key[1] / 16.0)) ** 2
+            cov = np.array([[s2, s2, 0.0], [s2, s2 + t2, 0.0], [0.0, 0.0, s2]])
+            models[key] = gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Gaussian.Covariance(cov))
+        return models[key]
+
     noise_m = [gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, SCALE ** o))
                for o in range(16)]
     anchor = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
@@ -93,10 +101,13 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     in_graph = multi[row[obs_lm[sel]]]
     factors = {}
     oct_ = np.clip(obs_octave[sel], 0, 15)
+    info = information(cam, obs_depth[sel], obs_dsig[sel], obs_octave[sel])
+    sd_px = 1.0 / np.sqrt(np.maximum(info[:, 2], 1e-12))
     for i in np.flatnonzero(in_graph):
         k, j, (u, v), d, o = obs_kf[sel[i]], obs_lm[sel[i]], obs_uv[sel[i]], obs_depth[sel[i]], oct_[i]
         if d > 0:
-            f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - cam.bf / d, v), noise_s[o], X(k), L(j), Kst)
+            f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - cam.bf / d, v), noise_s(o, sd_px[i]), X(k), L(j),
+                                            Kst)
         else:
             f = gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), noise_m[o], X(k), L(j), Km)
         factors[i] = f
@@ -140,7 +151,7 @@ def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.n
     def gate(values):
         T_new, Xs = positions(values)
         c2 = observation_chi2(cam, np.linalg.inv(T_new)[obs_row], Xs[row[obs_lm[sel]]], obs_uv[sel],
-                              obs_depth[sel], obs_octave[sel])
+                              obs_depth[sel], obs_octave[sel], obs_dsig[sel])
         return c2 > np.where(obs_depth[sel] > 0, th ** 2, th_m ** 2)
 
     active = np.ones(len(sel), bool)

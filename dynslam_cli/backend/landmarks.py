@@ -12,7 +12,7 @@ import numpy as np
 from dynslam_cli.backend.features import SCALE, Keypoints
 
 _LM = ("pos", "des", "octave", "dist", "first_kf", "origin", "moving", "visible", "found", "alive")
-_OBS = ("obs_kf", "obs_lm", "obs_uv", "obs_depth", "obs_octave")
+_OBS = ("obs_kf", "obs_lm", "obs_uv", "obs_depth", "obs_octave", "obs_dsig")
 # compact() drops the dead rows once they are more than this fraction of the rows (and the map has at
 # least COMPACT_MIN_ROWS): each compaction removes at least half the rows, so its cost is amortised O(1)
 # per culled landmark and the rows stay under twice the alive landmarks
@@ -46,6 +46,7 @@ class LandmarkMap:
         self.obs_uv = np.zeros((0, 2))
         self.obs_depth = np.zeros(0)
         self.obs_octave = np.zeros(0, np.int64)
+        self.obs_dsig = np.zeros(0)
 
     def __len__(self) -> int:
         return int(len(self.pos))
@@ -83,6 +84,7 @@ class LandmarkMap:
         self.obs_uv = np.concatenate([self.obs_uv, kp.uv])
         self.obs_depth = np.concatenate([self.obs_depth, kp.depth])
         self.obs_octave = np.concatenate([self.obs_octave, kp.octave])
+        self.obs_dsig = np.concatenate([self.obs_dsig, kp.dsig])
 
     def n_obs(self) -> np.ndarray:
         """Keyframes observing each landmark (N)."""

@@ -37,23 +37,33 @@ def _rodrigues(phi: np.ndarray) -> np.ndarray:
 
 
 def stereo_residuals(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray, depth: np.ndarray):
-    """Camera points, predicted (u, v, u_R) and the residual observed - predicted (N×3; the u_R
-    row is meaningless where ``depth`` is 0)."""
+    """Camera points and the residual observed - predicted (N×3): pixel (u, v) and the virtual
+    stereo disparity bf/depth (the last is meaningless where ``depth`` is 0)."""
     pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
     z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
     u = cam.fx * pc[:, 0] / z + cam.cx
     v = cam.fy * pc[:, 1] / z + cam.cy
-    ur = u - cam.bf / z
-    obs_ur = uv[:, 0] - cam.bf / np.where(depth > 0, depth, 1.0)
-    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, obs_ur - ur], 1)
+    disp = cam.bf / np.where(depth > 0, depth, 1.0)
+    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, disp - cam.bf / z], 1)
     return pc, e
 
 
-def chi2(cam: Camera, Tcw: np.ndarray, X, uv, depth, octave) -> np.ndarray:
-    """Whitened squared error of each observation (sigma = SCALE^octave px)."""
+def information(cam: Camera, depth: np.ndarray, dsig: np.ndarray, octave: np.ndarray) -> np.ndarray:
+    """(N, 3) inverse variances of the residuals of :func:`stereo_residuals`: the pixel's
+    sigma is SCALE^octave px; the disparity's, the depth's standard deviation ``dsig`` carried to
+    bf/depth (bf·dsig/depth² px); 0 where there is no depth."""
+    info = np.empty((len(depth), 3))
+    info[:, :2] = (SCALE ** (-2.0 * np.asarray(octave, np.float64)))[:, None]
+    has = depth > 0
+    sd = np.where(has, cam.bf * np.asarray(dsig, np.float64) / np.where(has, depth, 1.0) ** 2, 1.0)
+    info[:, 2] = np.where(has, 1.0 / np.maximum(sd, 1e-3) ** 2, 0.0)
+    return info
+
+
+def chi2(cam: Camera, Tcw: np.ndarray, X, uv, depth, octave, dsig) -> np.ndarray:
+    """Whitened squared error of each observation (:func:`information`)."""
     pc, e = stereo_residuals(cam, Tcw, X, uv, depth)
-    e[depth <= 0, 2] = 0
-    out = (e * e).sum(1) / SCALE ** (2.0 * octave)
+    out = (e * e * information(cam, depth, dsig, octave)).sum(1)
     out[pc[:, 2] <= 1e-6] = np.inf
     return out
 
@@ -69,7 +79,7 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
         return T_c2w.copy(), np.zeros(n, bool)
     stereo = kp.depth > 0
     th = np.where(stereo, huber ** 2, huber ** 2 * CHI2_MONO / CHI2_STEREO)
-    info = SCALE ** (-2.0 * kp.octave)
+    info = information(cam, kp.depth, kp.dsig, kp.octave)
     Tcw = np.linalg.inv(T_c2w)
     inl = np.ones(n, bool)
     for r in range(rounds):
@@ -78,12 +88,12 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
             pc, e = stereo_residuals(cam, Tcw, X, kp.uv, kp.depth)
             z = pc[:, 2]
             front = z > 1e-6
-            w = info * (inl & front)
+            w = info * (inl & front)[:, None]
             e[~stereo, 2] = 0
-            c2 = (e * e).sum(1) * info
+            c2 = (e * e * info).sum(1)
             if robust:
                 s = np.sqrt(np.maximum(c2, 1e-18))
-                w = w * np.where(s <= np.sqrt(th), 1.0, np.sqrt(th) / s)
+                w = w * np.where(s <= np.sqrt(th), 1.0, np.sqrt(th) / s)[:, None]
             zs = np.where(front, z, 1.0)
             x, y = pc[:, 0], pc[:, 1]
             Jp = np.zeros((n, 3, 3))
@@ -91,24 +101,23 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
             Jp[:, 0, 2] = -cam.fx * x / zs ** 2
             Jp[:, 1, 1] = cam.fy / zs
             Jp[:, 1, 2] = -cam.fy * y / zs ** 2
-            Jp[:, 2, 0] = cam.fx / zs
-            Jp[:, 2, 2] = (-cam.fx * x + cam.bf) / zs ** 2
+            Jp[:, 2, 2] = -cam.bf / zs ** 2
             Jp[~stereo, 2, :] = 0
             skew = np.zeros((n, 3, 3))  # -[pc]x
             skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
             skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
             J = np.concatenate([Jp, Jp @ skew], 2)  # d(pred)/d(rho, phi), left perturbation of Tcw
-            Jw = (J * w[:, None, None]).reshape(-1, 6)
+            Jw = (J * w[:, :, None]).reshape(-1, 6)
             H = Jw.T @ J.reshape(-1, 6)
             g = Jw.T @ e.reshape(-1)
-            if w.sum() <= 0 or np.linalg.matrix_rank(H) < 6:
+            if w[:, 0].sum() <= 0 or np.linalg.matrix_rank(H) < 6:
                 break
             d = np.linalg.solve(H, g)
             R = _rodrigues(d[3:])
             Tcw = np.block([[R @ Tcw[:3, :3], (R @ Tcw[:3, 3] + d[:3])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
             if np.linalg.norm(d) < 1e-8:
                 break
-        inl = chi2(cam, Tcw, X, kp.uv, kp.depth, kp.octave) <= th
+        inl = chi2(cam, Tcw, X, kp.uv, kp.depth, kp.octave, kp.dsig) <= th
     return np.linalg.inv(Tcw), inl
 
 
