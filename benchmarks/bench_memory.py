@@ -105,9 +105,8 @@ def snapshot(slam, loop) -> dict:
         "landmarks_alive": 0 if lm is None else int(lm.n_alive),
         "observations": 0 if lm is None else len(lm.obs_kf),
         "backend_mb": arrays_mb(be, lm),
-        "motion_keyframes": 0 if mm is None else len(mm.keyframes),
-        "motion_keyframes_mb": 0.0 if mm is None else sum(a.nbytes for d in mm.keyframes.values()
-                                                          for a in d.values()) / MB,
+        "motion_keyframes": len(slam.keyframes.instances()),
+        "motion_keyframes_mb": sum(a.nbytes for d in slam.keyframes.instances().values() for a in d.values()) / MB,
         "replay_items": 0 if mm is None else len(mm.replay.items),
         "tracking_events": len(slam.events),
         "update_records": 0 if loop is None else len(loop.records),

@@ -7,7 +7,7 @@ import numpy as np
 from dynslam_cli.motion.forget import (carve, forget_departed, forget_near, forget_overtaken, forget_seen_through,
                                        near_ids, refresh_keyframes)
 from dynslam_cli.motion.types import CheckResult
-from dynslam_cli.slam.keyframes import Keyframe, subsample_depth
+from dynslam_cli.slam.keyframes import Keyframe, KeyframeStore, subsample_depth
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
@@ -20,20 +20,30 @@ def _keyframe(pixels, depth, pose=None, raw=None):
 
 
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():
-    kfs = [SimpleNamespace(frame_id=0, instance_ids=np.array([0, 1, 2, 2, -1]), usable=np.ones(5, bool), near_ids=None),
-           SimpleNamespace(frame_id=5, instance_ids=np.array([1, 1, 0]), usable=np.zeros(3, bool), near_ids=None),
-           # ray 0 lies within the mask dilation of instance 2, ray 1 next to instance 1 only
-           SimpleNamespace(frame_id=10, instance_ids=np.array([1, 1]), usable=np.ones(2, bool),
-                           near_ids=np.array([[2, 1], [1, 0]]))]
+    def kf(fid, ids, usable, near=None, gone=None):
+        n = len(ids)
+        return Keyframe(fid, 0.0, np.zeros((n, 2), np.int32), np.zeros((n, 3), np.uint8), np.ones(n, np.float32),
+                        np.array(ids, np.int32), np.array(usable, bool), near_ids=near, gone=gone)
+
+    store = KeyframeStore()
+    store.add(kf(0, [0, 1, 2, 2, -1], [True] * 5))
+    store.add(kf(5, [1, 1, 0], [False] * 3))
+    # ray 0 lies within the mask dilation of instance 2, ray 1 next to instance 1 only
+    store.add(kf(10, [1, 1], [True, True], near=np.array([[2, 1], [1, 0]])))
+    store.add(kf(15, [1, 0], [True, True], gone=np.array([False, True])))  # no instances registered: untouched
     dropped = []
-    slam = SimpleNamespace(keyframes=kfs, forget_landmarks=lambda fid, ids: dropped.append((fid, ids.tolist())))
-    dyn = {0: np.array([2]), 5: np.array([], np.int32), 10: np.array([2])}
-    motion = SimpleNamespace(keyframes=dyn, keyframe_dynamic_ids=lambda k: dyn[k])
-    assert refresh_keyframes(slam, motion) == 3
-    assert dropped == [(0, [2]), (5, []), (10, [2])]  # the backend drops the landmarks on dynamic instances
-    assert kfs[0].usable.tolist() == [True, True, False, False, True]
-    assert kfs[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again
-    assert kfs[2].usable.tolist() == [False, True]
+    store.landmarks = SimpleNamespace(forget=lambda fid, ids: dropped.append((fid, ids.tolist())))
+    dyn = {0: [2], 5: [], 10: [2], 20: [1]}  # frame 20: a backend keyframe without neural-map rays
+    for fid in dyn:
+        store.register_instances(fid, np.full((3, 1), float(fid)), np.zeros(3, bool))
+    motion = SimpleNamespace(dynamic_ids=lambda feats, prior: np.array(dyn[int(feats[0, 0])], np.int32))
+    assert refresh_keyframes(store, motion) == 3
+    # the backend drops the landmarks on dynamic instances, in registration order
+    assert dropped == [(0, [2]), (5, []), (10, [2]), (20, [1])]
+    assert store[0].usable.tolist() == [True, True, False, False, True]
+    assert store[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again
+    assert store[2].usable.tolist() == [False, True]
+    assert store[3].usable.tolist() == [True, True]
 
 
 def test_near_ids_and_the_dilated_static_mask():

@@ -121,8 +121,9 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     pid = _instance_of(inst0, f0.gt == 1)
     assert np.isfinite(inst0.centres[pid - 1]).all()
     assert inst0.centres[pid - 1][2] == pytest.approx(2.0, abs=0.3)  # the person stands 2 m away
-    mod.register_keyframe(0, inst0)
-    assert mod.keyframe_dynamic_ids(0).size == 0
+    kept0 = mod.keyframe_instances(inst0)  # what a keyframe keeps to re-classify its instances
+    assert kept0[0].shape[0] == inst0.count and kept0[1].dtype == bool
+    assert mod.dynamic_ids(*kept0).size == 0
     # the map (rendered) is the empty room: the person stands 1.5 m in front of it
     room_depth = render_toy(W, H, person=False)[1]
     rec = mod.check_and_update(f0, inst0, pose, room_depth[::2, ::2], None)
@@ -132,7 +133,7 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     assert not inst0.static_mask[f0.gt == 1].mean() > 0.1
     assert inst0.static_mask[f0.gt == 0].mean() > 0.9
     # the keyframe stored before the update now forgets the person's rays
-    assert mod.keyframe_dynamic_ids(0).tolist() == [pid]
+    assert mod.dynamic_ids(*kept0).tolist() == [pid]
     # next frame: the person moved; g already calls it dynamic, the check agrees → no update
     f1 = _frame(1, person_x=0.2)
     inst1 = mod.observe(f1, pose)
@@ -205,8 +206,8 @@ def test_module_prior_classes_or_rule_and_errors():
     inst = mod.observe(f0, np.eye(4))
     assert inst.dynamic.tolist() == [True, False] and inst.prior_probs.tolist() == [1.0, 0.0]
     assert inst.static_mask[f0.gt == 1].sum() == 0 and inst.static_mask[f0.gt == 2].all()
-    mod.register_keyframe(0, inst)  # keyframes keep the class prior through re-classification
-    assert mod.keyframe_dynamic_ids(0).tolist() == [1]
+    kept = mod.keyframe_instances(inst)  # keyframes keep the class prior through re-classification
+    assert mod.dynamic_ids(*kept).tolist() == [1]
     # after the check the class prior still holds (the OR rule), whatever g learned
     mod.check_and_update(f0, inst, np.eye(4), f0.depth, None)
     assert inst.dynamic[0]
@@ -229,8 +230,8 @@ def test_module_prior_or_rule_and_state_dict_round_trip(tmp_path):
     inst = mod.observe(f0, np.eye(4))
     assert inst.dynamic[pid - 1] and inst.prior_probs[pid - 1] > 0.5  # prior says person → dynamic
     assert inst.embeddings.shape[1] == mod.encoder.dim and mod.in_dim == mod.encoder.dim + 3
-    mod.register_keyframe(3, inst)
-    assert mod.keyframe_dynamic_ids(3).tolist() == [pid]
+    kept = mod.keyframe_instances(inst)
+    assert mod.dynamic_ids(*kept).tolist() == [pid]
     rec = mod.check_and_update(f0, inst, np.eye(4), render_toy(W, H, person=False)[1], None)
     assert rec is not None  # the online g learns the person too
     state = mod.state_dict()
@@ -240,10 +241,8 @@ def test_module_prior_or_rule_and_state_dict_round_trip(tmp_path):
     f1 = _frame(1, person_x=0.1)
     a, b = mod.observe(f1, np.eye(4)), mod2.observe(f1, np.eye(4))
     assert np.allclose(a.probs, b.probs) and np.array_equal(a.dynamic, b.dynamic)
-    assert mod2.keyframe_dynamic_ids(3).tolist() == mod.keyframe_dynamic_ids(3).tolist()
+    assert mod2.dynamic_ids(*kept).tolist() == mod.dynamic_ids(*kept).tolist()
     assert len(mod2.replay) == len(mod.replay) and mod2.updates == mod.updates
-    with pytest.raises(DynslamError, match="keyframe 99"):
-        mod2.keyframe_dynamic_ids(99)
     with pytest.raises(DynslamError, match="saved with encoder"):
         _module().load_state_dict(state)
 

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from dynslam_cli.slam.keyframes import depth_edges
 
@@ -12,3 +13,54 @@ def test_depth_edges_mark_both_sides_of_a_step_and_holes():
     assert e[7, 1] and e[8, 0] and not e[8, 1]  # the hole's valid neighbours, not the hole itself
     assert depth_edges(d, 0.05, 2)[:, 3:9].all()
     assert not depth_edges(np.full((5, 5), 2.0, np.float32), 0.05, 2).any()
+
+
+def _kf(fid, n, start=0):
+    from dynslam_cli.slam.keyframes import Keyframe
+
+    px = np.stack([np.arange(start, start + n), np.full(n, fid)], 1).astype(np.int32)
+    return Keyframe(fid, float(fid), px, np.full((n, 3), fid, np.uint8), np.arange(n, dtype=np.float32) + fid,
+                    np.arange(n, dtype=np.int32), np.ones(n, bool))
+
+
+class TestKeyframeStore:
+    def _store(self):
+        from dynslam_cli.slam.keyframes import KeyframeStore
+
+        store = KeyframeStore()
+        store.add(_kf(0, 3))
+        store.add(_kf(5, 2, start=10))
+        return store
+
+    def test_sequence_of_keyframes(self):
+        store = self._store()
+        assert len(store) == 2 and store[-1].frame_id == 5 and [k.frame_id for k in store] == [0, 5]
+        assert [k.frame_id for k in store[-1:]] == [5]
+
+    def test_gather_known_rays_in_any_order(self):
+        store = self._store()
+        uv, rgb, depth, owner = store.gather(np.array([4, 0, 3, 2]))
+        assert owner.tolist() == [1, 0, 1, 0]
+        assert uv.tolist() == [[11, 5], [0, 0], [10, 5], [2, 0]]
+        assert rgb[:, 0].tolist() == [5, 0, 5, 0] and depth.tolist() == [6.0, 0.0, 5.0, 2.0]
+        with pytest.raises(IndexError):
+            store.gather(np.array([5]))
+
+    def test_usable_rays(self):
+        store = self._store()
+        store[0].usable[1] = False
+        assert store.usable_rays().tolist() == [0, 2, 3, 4]
+
+    def test_forget_without_a_backend_and_a_state_round_trip(self):
+        from dynslam_cli.slam.keyframes import KeyframeStore
+
+        store = self._store()
+        store.register_instances(5, np.ones((2, 4)), np.array([False, True]))
+        assert store.has_instances(5) and not store.has_instances(0)
+        assert store.forget({5: np.array([1])}) == 1  # ray of instance 1 in keyframe 5
+        assert store[1].usable.tolist() == [True, False] and store[0].usable.all()
+        back = KeyframeStore()
+        back.load_state_dict(store.state_dict())
+        assert [k.frame_id for k in back] == [0, 5] and back[1].usable.tolist() == [True, False]
+        rec = back.instances()[5]
+        assert rec["feats"].dtype == np.float32 and rec["prior"].tolist() == [False, True]

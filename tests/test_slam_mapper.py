@@ -7,7 +7,7 @@ import torch
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.lie import se3_exp_np
 from dynslam_cli.slam import mapper
-from dynslam_cli.slam.keyframes import valid_pixels
+from dynslam_cli.slam.keyframes import KeyframeStore, valid_pixels
 from dynslam_cli.slam.mapper import Mapper, auto_bounds
 from dynslam_cli.slam.state import SlamState
 from dynslam_cli.slam.system import SLAM
@@ -60,8 +60,12 @@ def test_keyframes_store_a_fraction_of_the_pixels_and_their_rays_are_gathered_as
     n = round(state.cfg.mapping.keyframe_ray_fraction * INTR.width * INTR.height)
     assert len(kf) == n and kf.frame_id == 2 and np.all(kf.instance_ids == -1) and kf.usable.all()
     short = state.keyframes[1]  # keyframes of other lengths (one empty) in between
-    state.keyframes.insert(1, replace(short, pixels=short.pixels[:7], rgb=short.rgb[:7], depth=short.depth[:7]))
-    state.keyframes.insert(2, replace(short, pixels=short.pixels[:0], rgb=short.rgb[:0], depth=short.depth[:0]))
+    frames = list(state.keyframes)
+    frames[1:1] = [replace(short, pixels=short.pixels[:7], rgb=short.rgb[:7], depth=short.depth[:7]),
+                   replace(short, pixels=short.pixels[:0], rgb=short.rgb[:0], depth=short.depth[:0])]
+    state.keyframes = KeyframeStore()
+    for k in frames:
+        state.keyframes.add(k)
     ref = _concatenated_rays(state)
     total = 3 * n + 7
     assert ref["owner"].tolist() == [0] * n + [1] * 7 + [3] * n + [4] * n

@@ -17,26 +17,13 @@ from dynslam_cli.motion.checkable import project_into
 from dynslam_cli.slam.keyframes import DEPTH_STRIDE, depth_edges
 
 
-def refresh_keyframes(slam, motion) -> int:
-    """Recompute every keyframe's usable rays of ``slam`` from the current classifier of ``motion``
-    (a :class:`~dynslam_cli.motion.module.MotionModule`), and drop the backend landmarks made on
-    instances now called dynamic; returns rays masked."""
-    masked = 0
-    dynamic = {fid: motion.keyframe_dynamic_ids(fid) for fid in motion.keyframes}  # one classifier pass
-    for fid, dyn_ids in dynamic.items():
-        slam.forget_landmarks(fid, dyn_ids)
-    for kf in slam.keyframes:
-        if kf.frame_id not in dynamic:
-            continue
-        dyn_ids = dynamic[kf.frame_id]
-        kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
-        if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
-            kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)
-        gone = getattr(kf, "gone", None)
-        if gone is not None:  # surfaces seen gone stay forgotten
-            kf.usable &= ~gone
-        masked += int((~kf.usable).sum())
-    return masked
+def refresh_keyframes(keyframes, motion) -> int:
+    """Re-classify the registered instances of every keyframe in ``keyframes`` (a
+    :class:`~dynslam_cli.slam.keyframes.KeyframeStore`) with the current classifier of ``motion``
+    (a :class:`~dynslam_cli.motion.module.MotionModule`) and let the store forget the dynamic ones
+    (rays masked, backend landmarks dropped); returns rays masked."""
+    dynamic = {fid: motion.dynamic_ids(r["feats"], r["prior"]) for fid, r in keyframes.instances().items()}
+    return keyframes.forget(dynamic)
 
 
 def near_ids(ids: np.ndarray, pixels: np.ndarray, mask_dilation: float) -> np.ndarray:

@@ -95,7 +95,6 @@ class MotionModule:
         if m.prior:
             self.prior = load_prior(m.prior, self.encoder.name, int(self.encoder.dim), self.device)
         self.prior_class_ids = prior_class_ids(self.segmenter, m.prior_classes)
-        self.keyframes: dict[int, dict] = {}
         self.updates = 0
 
     # --- features
@@ -242,25 +241,22 @@ class MotionModule:
         centres = instance_centres(ren, sub, len(emb), intr, pose_c2w, step=1)
         return self._features(emb, centres)
 
-    # --- keyframes
-    def register_keyframe(self, kf_id: int, inst: FrameInstances) -> None:
-        feats = self._feats_of(inst)
+    # --- keyframes (kept in the keyframe store, slam/keyframes.KeyframeStore)
+    def keyframe_instances(self, inst: FrameInstances) -> tuple[np.ndarray, np.ndarray]:
+        """What a keyframe keeps of the frame's instances to re-classify them later: the
+        classifier's features and the class prior (bool), one row per instance."""
         pp = inst.prior_probs if inst.prior_probs is not None else np.zeros(inst.count, np.float32)
-        self.keyframes[int(kf_id)] = {"feats": feats.astype(np.float32).copy(), "prior": (pp > 0.5).copy()}
+        return self._feats_of(inst).astype(np.float32), pp > 0.5
 
-    def keyframe_dynamic_ids(self, kf_id: int) -> np.ndarray:
-        kf = self.keyframes.get(int(kf_id))
-        if kf is None:
-            raise DynslamError(f"keyframe {kf_id} was not registered with the motion module")
-        dyn = self.classifier.predict(kf["feats"]) | kf["prior"] if len(kf["feats"]) else np.zeros(0, bool)
+    def dynamic_ids(self, feats: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """The instance ids (row + 1) the current classifier (or the class prior) calls dynamic."""
+        dyn = self.classifier.predict(feats) | prior if len(feats) else np.zeros(0, bool)
         return (np.nonzero(dyn)[0] + 1).astype(np.int32)
 
     # --- checkpoint
     def state_dict(self) -> dict:
         """Tensors and plain Python values only (loads with ``torch.load(..., weights_only=True)``)."""
         return {"classifier": self.classifier.state_dict(), "replay": self.replay.state_dict(),
-                "keyframes": {k: {"feats": torch.from_numpy(v["feats"].copy()), "prior": torch.from_numpy(v["prior"].copy())}
-                              for k, v in self.keyframes.items()},
                 "updates": self.updates, "encoder": self.encoder.name, "in_dim": self.in_dim}
 
     def load_state_dict(self, d: dict) -> None:
@@ -269,9 +265,4 @@ class MotionModule:
                                f"this run uses {self.encoder.name} ({self.in_dim}-d)")
         self.classifier.load_state_dict(d["classifier"])
         self.replay.load_state_dict(d["replay"])
-        def arr(x, dtype):
-            return np.asarray(x.numpy() if isinstance(x, torch.Tensor) else x, dtype)
-
-        self.keyframes = {int(k): {"feats": arr(v["feats"], np.float32), "prior": arr(v["prior"], bool)}
-                          for k, v in d["keyframes"].items()}
         self.updates = int(d["updates"])

@@ -100,7 +100,7 @@ class DynamicLoop:
         if record is not None:
             rec = record.to_json()
             rec["timestamp"] = stamp
-            masked = refresh_keyframes(self.slam, self.mm)
+            masked = refresh_keyframes(self.slam.keyframes, self.mm)
             rec["keyframe_rays_masked"] = masked
             rec["retracked"] = retracked
             self.records.append(rec)
@@ -109,11 +109,11 @@ class DynamicLoop:
         if len(self.slam.keyframes) > n_kf:
             kf = self.slam.keyframes[-1]
             kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
-            self.mm.register_keyframe(kf.frame_id, inst)
+            self.slam.keyframes.register_instances(kf.frame_id, *self.mm.keyframe_instances(inst))
             carve(self.slam.keyframes, self.slam.intr, frame.depth, inst.static_mask, self.carve_margin, self.width)
         fid = self.slam.n_frames - 1
-        if self.slam.backend_keyframe and fid not in self.mm.keyframes:  # its landmarks carry these ids
-            self.mm.register_keyframe(fid, inst)
+        if self.slam.backend_keyframe and not self.slam.keyframes.has_instances(fid):  # its landmarks carry these ids
+            self.slam.keyframes.register_instances(fid, *self.mm.keyframe_instances(inst))
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:

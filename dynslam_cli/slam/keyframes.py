@@ -1,7 +1,10 @@
-"""Keyframe ray store: each keyframe keeps a random subset of its pixels as rays for replay.
+"""The keyframe store: each keyframe keeps a random subset of its pixels as rays for replay.
 
 Per stored ray: pixel (u, v), colour, depth, instance id (int32, -1 = none) and a mutable
 ``usable`` flag (False = the dynamic module excluded the ray; bundle adjustment skips it).
+:class:`KeyframeStore` holds the keyframes of a run with what learning to forget needs of them:
+the instances of each keyframe (the classifier's features, the class prior), and the backend
+landmarks made on those instances (dropped through the store when an instance is found to move).
 """
 
 from __future__ import annotations
@@ -58,6 +61,105 @@ class Keyframe:
                         np.asarray(d["depth"]), np.asarray(d["instance_ids"]), np.array(d["usable"], bool),
                         np.array(d["pose_c2w"], np.float64), opt_array("depth_small"), opt_array("near_ids"),
                         opt_array("depth_raw_small"), opt_array("gone"))
+
+
+class KeyframeStore:
+    """The keyframes of a run (a sequence: ``len``, iteration, indexing and slices as a list) and,
+    for the frames whose instances were registered (neural-map keyframes and backend keyframes),
+    the instances' classifier features and class prior.  ``landmarks``: the backend (anything with
+    ``forget(frame_id, instance_ids)``), or None without one."""
+
+    def __init__(self):
+        self._frames: list[Keyframe] = []
+        self._instances: dict[int, dict] = {}
+        self.landmarks = None
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __iter__(self):
+        return iter(self._frames)
+
+    def __getitem__(self, i):
+        return self._frames[i]
+
+    def add(self, kf: Keyframe) -> Keyframe:
+        self._frames.append(kf)
+        return kf
+
+    # -- rays --------------------------------------------------------------------------------------
+    def usable_rays(self) -> np.ndarray:
+        """Indices of the usable rays into all keyframes' rays in keyframe order."""
+        if not self._frames:
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(np.concatenate([k.usable for k in self._frames]))
+
+    def gather(self, idx: np.ndarray) -> tuple:
+        """Rays ``idx`` (indices into all keyframes' rays in keyframe order): pixels (N×2 int64),
+        colours (N×3 uint8), depths (N float32) and the keyframe each belongs to (N int64), gathered
+        from the keyframes' own arrays (nothing is copied for the rays not asked for)."""
+        idx = np.asarray(idx, np.int64)
+        start = np.cumsum([0] + [len(k) for k in self._frames])
+        owner = np.searchsorted(start, idx, side="right") - 1
+        if len(idx) and (idx.min() < 0 or idx.max() >= start[-1]):
+            raise IndexError(f"keyframe ray index out of range 0..{start[-1] - 1}")
+        local = idx - start[owner]
+        uv = np.empty((len(idx), 2), np.int64)
+        rgb = np.empty((len(idx), 3), np.uint8)
+        depth = np.empty(len(idx), np.float32)
+        order = np.argsort(owner, kind="stable")  # one keyframe at a time
+        bounds = np.searchsorted(owner[order], np.arange(len(self._frames) + 1))
+        for o in np.flatnonzero(np.diff(bounds)):
+            rows = order[bounds[o]:bounds[o + 1]]
+            k, at = self._frames[o], local[rows]
+            uv[rows], rgb[rows], depth[rows] = k.pixels[at], k.rgb[at], k.depth[at]
+        return uv, rgb, depth, owner
+
+    # -- instances and forgetting --------------------------------------------------------------------
+    def register_instances(self, frame_id: int, feats: np.ndarray, prior: np.ndarray) -> None:
+        """Frame ``frame_id``'s instances (id i+1 for row i): classifier features and class prior."""
+        self._instances[int(frame_id)] = {"feats": np.asarray(feats, np.float32).copy(),
+                                          "prior": np.asarray(prior, bool).copy()}
+
+    def has_instances(self, frame_id: int) -> bool:
+        return int(frame_id) in self._instances
+
+    def instances(self) -> dict:
+        """Frame id -> {"feats", "prior"} of every registered frame, in registration order."""
+        return self._instances
+
+    def forget(self, dynamic: dict) -> int:
+        """``dynamic``: frame id -> the instance ids now called dynamic, for every registered frame.
+        The backend drops the landmarks made on them; every keyframe's usable rays are recomputed
+        (rays of, or within the mask dilation of, a dynamic instance; rays seen gone stay
+        unusable; rays of instances called static again are usable again).  Returns rays masked."""
+        if self.landmarks is not None:
+            for fid, dyn_ids in dynamic.items():
+                self.landmarks.forget(fid, dyn_ids)
+        masked = 0
+        for kf in self._frames:
+            if kf.frame_id not in dynamic:
+                continue
+            dyn_ids = dynamic[kf.frame_id]
+            kf.usable = ~np.isin(kf.instance_ids, dyn_ids)
+            if kf.near_ids is not None:  # rays within the mask dilation of a dynamic instance
+                kf.usable &= ~np.isin(kf.near_ids, dyn_ids).any(axis=1)
+            if kf.gone is not None:  # surfaces seen gone stay forgotten
+                kf.usable &= ~kf.gone
+            masked += int((~kf.usable).sum())
+        return masked
+
+    # -- checkpoints ----------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"keyframes": [k.to_dict() for k in self._frames],
+                "instances": {k: {"feats": v["feats"].copy(), "prior": v["prior"].copy()}
+                              for k, v in self._instances.items()}}
+
+    def load_state_dict(self, d: dict) -> None:
+        self._frames = [Keyframe.from_dict(k) for k in d["keyframes"]]
+        self._instances = {}
+        for k, v in d["instances"].items():
+            self.register_instances(int(k), np.asarray(v["feats"]), np.asarray(v["prior"]))
 
 
 DEPTH_STRIDE = 4

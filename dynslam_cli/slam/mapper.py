@@ -127,7 +127,7 @@ class Mapper:
                       cur.depth_np.reshape(-1)[sel].copy(), ids, usable, s.poses[cur.idx].copy(),
                       subsample_depth(cur.masked_depth()),  # what the map was taught: static pixels
                       depth_raw_small=subsample_depth(cur.depth_np))
-        s.keyframes.append(kf)
+        s.keyframes.add(kf)
         return kf
 
     def keyframe_rays(self, idx: np.ndarray) -> Optional[dict]:
@@ -138,21 +138,7 @@ class Mapper:
         s = self.s
         if not s.keyframes:
             return None
-        idx = np.asarray(idx, np.int64)
-        start = np.cumsum([0] + [len(k) for k in s.keyframes])
-        owner = np.searchsorted(start, idx, side="right") - 1
-        if len(idx) and (idx.min() < 0 or idx.max() >= start[-1]):
-            raise IndexError(f"keyframe ray index out of range 0..{start[-1] - 1}")
-        local = idx - start[owner]
-        uv = np.empty((len(idx), 2), np.int64)
-        rgb = np.empty((len(idx), 3), np.uint8)
-        depth = np.empty(len(idx), np.float32)
-        order = np.argsort(owner, kind="stable")  # one keyframe at a time
-        bounds = np.searchsorted(owner[order], np.arange(len(s.keyframes) + 1))
-        for o in np.flatnonzero(np.diff(bounds)):
-            rows = order[bounds[o]:bounds[o + 1]]
-            k, at = s.keyframes[o], local[rows]
-            uv[rows], rgb[rows], depth[rows] = k.pixels[at], k.rgb[at], k.depth[at]
+        uv, rgb, depth, owner = s.keyframes.gather(idx)
         flat = torch.from_numpy(uv[:, 1] * s.W + uv[:, 0]).to(s.device)
         return {"n": len(s.keyframes), "dirs": s.dirs[flat], "rgb": s.t(rgb) / 255.0, "depth": s.t(depth),
                 "owner": torch.from_numpy(owner).to(s.device)}
@@ -162,7 +148,7 @@ class Mapper:
         ones only) and flat pixel indices of the current frame (its valid, unmasked pixels)."""
         s = self.s
         n_kf = len(s.keyframes) if use_keyframes else 0
-        usable = np.flatnonzero(np.concatenate([k.usable for k in s.keyframes])) if n_kf else np.zeros(0, np.int64)
+        usable = s.keyframes.usable_rays() if n_kf else np.zeros(0, np.int64)
         if len(usable) == 0:
             n_cur, n_kfr = n_rays, 0
         else:

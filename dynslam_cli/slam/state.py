@@ -19,7 +19,7 @@ from dynslam_cli.backend.backend import Backend
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import pixel_dirs
 from dynslam_cli.map.model import NeuralMap
-from dynslam_cli.slam.keyframes import Keyframe, depth_edges, valid_pixels
+from dynslam_cli.slam.keyframes import KeyframeStore, depth_edges, valid_pixels
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ class SlamState:
         self.bounds = None if bounds is None else np.asarray(bounds, np.float64)
         self.model: Optional[NeuralMap] = None
         self.map_opt: Optional[torch.optim.Optimizer] = None
-        self.keyframes: list[Keyframe] = []
+        self.keyframes = KeyframeStore()  # the neural map's keyframes, their instances, the landmark handle
         self.poses: list[np.ndarray] = []       # latest estimate of every frame (c2w)
         self.rel: list[Optional[np.ndarray]] = []  # pose relative to its keyframe at tracking time
         self.kf_of: list[int] = []               # keyframe frame id each frame is expressed against
@@ -138,6 +138,7 @@ class SlamState:
         i = self.intr
         kw = {} if first_pose is None else {"first_pose": first_pose}
         self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend, **kw)
+        self.keyframes.landmarks = self.backend  # forgetting an instance drops its landmarks too
         return self.backend
 
     def event(self, idx: int, kind: str, detail: str) -> None:

@@ -18,7 +18,6 @@ import torch
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.slam import render as views
 from dynslam_cli.slam.frontend import Frontend, TrackResult, first_pose
-from dynslam_cli.slam.keyframes import Keyframe
 from dynslam_cli.slam.mapper import AUTO_MARGIN, MapResult, Mapper, auto_bounds
 from dynslam_cli.slam.state import SlamState
 
@@ -69,11 +68,6 @@ class SLAM(SlamState):
         """Track the last tracked frame again (e.g. with a corrected static mask), replacing its
         pose; must come between track() and map() of that frame."""
         return self.frontend.retrack(frame, mask)
-
-    def forget_landmarks(self, frame_id: int, instance_ids) -> int:
-        """Remove the backend landmarks that frame ``frame_id``'s keyframe made on ``instance_ids``
-        (found to move since); 0 without the backend."""
-        return 0 if self.backend is None else self.backend.forget(frame_id, instance_ids)
 
     def map(self, frame, mask: Optional[np.ndarray] = None, instance_ids: Optional[np.ndarray] = None) -> Optional[MapResult]:
         """Bundle adjustment when due, then keyframe insertion when due, for the last tracked frame."""
@@ -135,7 +129,7 @@ class SLAM(SlamState):
             "bounds": None if self.bounds is None else self.bounds.copy(),
             "model": None if self.model is None else {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
             "map_opt": None if self.map_opt is None else self.map_opt.state_dict(),
-            "keyframes": [k.to_dict() for k in self.keyframes],
+            "keyframes": self.keyframes.state_dict(),
             "poses": np.array(self.poses).reshape(-1, 4, 4),
             "rel": [None if r is None else r.copy() for r in self.rel],
             "kf_of": list(self.kf_of),
@@ -153,7 +147,7 @@ class SLAM(SlamState):
             self.model.load_state_dict(d["model"])
             if d.get("map_opt") is not None:
                 self.map_opt.load_state_dict(d["map_opt"])
-        self.keyframes = [Keyframe.from_dict(k) for k in d["keyframes"]]
+        self.keyframes.load_state_dict(d["keyframes"])
         self.poses = [np.array(p, np.float64) for p in d["poses"]]
         self.rel = [None if r is None else np.array(r) for r in d["rel"]]
         self.kf_of = list(d["kf_of"])
@@ -164,6 +158,6 @@ class SLAM(SlamState):
         self.cur = None
         pd = d.get("prev_depth")
         self.frontend.prev_depth = None if pd is None else np.asarray(pd, np.float32)
-        self.backend = None
+        self.backend = self.keyframes.landmarks = None
         if d.get("backend") is not None:
             self.make_backend().load_state_dict(d["backend"])
