@@ -82,7 +82,8 @@ def run_masker(folder: Path, dilation: float):
     return mask
 
 
-def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: int | None) -> dict:
+def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: int | None,
+             depth_noise: float | None = None) -> dict:
     from dynslam_cli.backend.backend import Backend
     from dynslam_cli.backend.config import BackendConfig
     from dynslam_cli.config.loader import parse_override
@@ -99,7 +100,8 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
         keys, value = parse_override(s)
         bcfg = dataclasses.replace(bcfg, **{keys[-1]: type(getattr(bcfg, keys[-1]))(value)})
     k = seq.intrinsics
-    be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg)
+    noise = seq.depth_noise if depth_noise is None else depth_noise
+    be = Backend((k.fx, k.fy, k.cx, k.cy, k.width, k.height), bcfg, depth_noise=noise)
     masker = None  # frame -> H×W bool, True where something moves
     if masks == "yolo":
         people = person_masker()
@@ -150,6 +152,8 @@ def main() -> None:
     ap.add_argument("--depth", choices=("cut", "full"), default="cut",
                     help="depth as the config cuts it (data.max_depth) or all of it")
     ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--depth-noise", type=float, default=None,
+                    help="the depth noise per metre^2 the backend assumes (default: the sequence's own)")
     ap.add_argument("--events", action="store_true", help="print the lost frames")
     a = ap.parse_args()
     rows = []
@@ -161,13 +165,14 @@ def main() -> None:
             if masks == "yolo" and not YOLO.is_file():
                 print(f"skipping yolo masks: {YOLO} is absent", file=sys.stderr)
                 continue
-            r = run_case(spec, masks, a.set, a.depth, a.frames)
+            r = run_case(spec, masks, a.set, a.depth, a.frames, a.depth_noise)
             rows.append(r)
             print(f"done {r['seq']} {masks}", file=sys.stderr, flush=True)
             if a.events:
                 for e in r["events"]:
                     print("  lost", e, file=sys.stderr)
-    print(f"settings: {' '.join(a.set) or 'defaults'}, depth {a.depth}")
+    noise = "the sequence's" if a.depth_noise is None else f"{a.depth_noise:g}"
+    print(f"settings: {' '.join(a.set) or 'defaults'}, depth {a.depth}, depth noise {noise}")
     cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "max_cm", "still_cm", "lost", "keyframes",
             "track_ms", "ba_ms", "ba_max_ms", "landmarks", "mask_ms")
     print(" | ".join(cols))

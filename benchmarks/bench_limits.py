@@ -506,10 +506,11 @@ def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:
 
 def backend_rows(cfg, intr, frames, reps, peaks) -> list[dict]:
     from dynslam_cli.backend.features import LEVELS, SCALE, Detector
+    from dynslam_cli.data.config import DataConfig
     from dynslam_cli.backend.tracking import optimize_pose
 
     f = frames[0]
-    det = Detector(cfg.backend.features, intr.width, intr.height, depth_noise=cfg.backend.depth_noise)
+    det = Detector(cfg.backend.features, intr.width, intr.height, DataConfig.DEPTH_NOISE)
     depth = f.depth_full if f.depth_full is not None else f.depth
     rows = [make_row(f"ORB extraction {intr.width}x{intr.height}", "cpu",
                      median_ms(lambda: det.detect(f.rgb, depth), reps, 1),

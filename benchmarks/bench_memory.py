@@ -94,7 +94,7 @@ def snapshot(slam, loop) -> dict:
     """The sizes of what grows with the sequence, through public attributes only."""
     be = slam.backend
     lm = None if be is None else be.lm
-    mm = None if loop is None else loop.mm
+    mm = loop.mm
     return {
         "frames_tracked": slam.n_frames,
         "map_keyframes": len(slam.keyframes),
@@ -109,7 +109,7 @@ def snapshot(slam, loop) -> dict:
         "motion_keyframes_mb": sum(a.nbytes for d in slam.keyframes.instances().values() for a in d.values()) / MB,
         "replay_items": 0 if mm is None else len(mm.replay.items),
         "tracking_events": len(slam.events),
-        "update_records": 0 if loop is None else len(loop.records),
+        "update_records": len(loop.records),
     }
 
 

@@ -179,6 +179,23 @@ def test_synthetic_folder_masks_and_json_intrinsics(tmp_path: Path):
     assert f.dynamic_mask.dtype == np.bool_ and f.dynamic_mask.sum() == 12 * 16
     assert np.array_equal(f.dynamic_mask, f.instance_ids == 702)
     assert f.depth[5, 2] == pytest.approx(1.2)  # depth / synth.json's 1000, not 5000
+    from dynslam_cli.data.config import DataConfig
+
+    assert seq.depth_noise == DataConfig.DEPTH_NOISE  # synth.json without a sensor block: the default
+
+
+def test_synthetic_folder_tells_its_depth_noise(tmp_path: Path):
+    from dynslam_cli.errors import DynslamError
+
+    d = make_folder(tmp_path / "s", n=2, synth={"intrinsics": [40.0, 40.0, 15.5, 11.5],
+                                                 "sensor": {"depth_noise": 0.002}})
+    assert open_sequence(str(d)).depth_noise == 0.002
+    d0 = make_folder(tmp_path / "s0", n=2, synth={"intrinsics": [40.0, 40.0, 15.5, 11.5], "sensor": {"depth_noise": 0}})
+    assert open_sequence(str(d0)).depth_noise == 1e-4  # noiseless: trusted to the quantisation
+    bad = make_folder(tmp_path / "sb", n=2, synth={"intrinsics": [40.0, 40.0, 15.5, 11.5],
+                                                   "sensor": {"depth_noise": "loud"}})
+    with pytest.raises(DynslamError, match="sensor.depth_noise' must be a number"):
+        open_sequence(str(bad))
 
 
 def test_synth_name_renders_once_into_cache(tmp_path: Path, monkeypatch):

@@ -23,7 +23,7 @@ TINY = ["map.n_levels=4", "map.log2_hashmap_size=12", "map.voxel_size=0.1",
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
     """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
-    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+    monkeypatch.setattr("dynslam_cli.run.loop.CHECK_WARMUP", 2)
     monkeypatch.setattr("dynslam_cli.eval.mesh.MESH_SAMPLES", 5000)  # a coarse mesh score is enough here
 
 

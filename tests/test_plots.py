@@ -44,7 +44,7 @@ def _write_run(d: Path, seq: dict, frames: int, data: dict, mode: str = "dynamic
 @pytest.fixture()
 def bonn_run(tmp_path, bonn_clip):
     """A run folder on the real Bonn clip (start 10, stride 20) with masks and renders of 3 frames,
-    named by the stamps the sequence reader gives the runner (run/dynamic.py names files by them)."""
+    named by the stamps the sequence reader gives the runner (run/loop.py names files by them)."""
     import cv2
 
     from dynslam_cli.config.loader import load_config

@@ -95,14 +95,14 @@ def test_bad_input_exits_2_with_one_line(clip, tmp_path):
 def test_a_run_that_breaks_says_so_and_frees_the_folder(clip, tmp_path, monkeypatch, exc, status):
     from dynslam_cli.slam.system import SLAM
 
-    process = SLAM.process
+    track = SLAM.track
 
     def breaks_at_frame_2(self, frame, *a, **k):
         if frame.index == 2:
             raise exc
-        return process(self, frame, *a, **k)
+        return track(self, frame, *a, **k)
 
-    monkeypatch.setattr(SLAM, "process", breaks_at_frame_2)
+    monkeypatch.setattr(SLAM, "track", breaks_at_frame_2)
     out = tmp_path / "run"
     res = _run(["run", "--seq", str(clip), "--mode", "static", "--out", str(out), "-q"] + TINY)
     assert res.exit_code != 0

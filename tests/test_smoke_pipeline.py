@@ -21,7 +21,7 @@ TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
 @pytest.fixture(autouse=True)
 def early_check(monkeypatch):
     """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
-    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+    monkeypatch.setattr("dynslam_cli.run.loop.CHECK_WARMUP", 2)
 
 
 def _ok(args):

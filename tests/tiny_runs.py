@@ -15,7 +15,7 @@ def tiny_sets(first_iters: int = 20, ba_rays: int = 256, threads: int = 1) -> li
 
 def check_from_frame_2(monkeypatch) -> None:
     """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
-    monkeypatch.setattr("dynslam_cli.run.dynamic.CHECK_WARMUP", 2)
+    monkeypatch.setattr("dynslam_cli.run.loop.CHECK_WARMUP", 2)
 
 
 def render_walker(tmp_path_factory, width: int, height: int, frames: int):

@@ -47,13 +47,19 @@ class TrackOutcome:
 
 class Backend:
     """``intrinsics``: (fx, fy, cx, cy, W, H) of the undistorted images; ``cfg``: BackendConfig;
-    ``first_pose``: the first frame's camera-to-world pose (identity when None)."""
+    ``first_pose``: the first frame's camera-to-world pose (identity when None); ``depth_noise``: the
+    sensor's depth noise per metre² (``Sequence.depth_noise``; ``DataConfig.DEPTH_NOISE`` when None)."""
 
-    def __init__(self, intrinsics, cfg: Optional[BackendConfig] = None, first_pose: Optional[np.ndarray] = None):
+    def __init__(self, intrinsics, cfg: Optional[BackendConfig] = None, first_pose: Optional[np.ndarray] = None,
+                 depth_noise: Optional[float] = None):
         fx, fy, cx, cy, w, h = intrinsics
         self.cfg = cfg or BackendConfig()
         self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.BASELINE)
-        self.detector = Detector(self.cfg.features, int(w), int(h), depth_noise=self.cfg.depth_noise)
+        if depth_noise is None:
+            from dynslam_cli.data.config import DataConfig
+
+            depth_noise = DataConfig.DEPTH_NOISE
+        self.detector = Detector(self.cfg.features, int(w), int(h), depth_noise=float(depth_noise))
         self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
         self.lm = LandmarkMap()
         self.kf_frame = np.zeros(0, np.int64)

@@ -19,9 +19,6 @@ class BackendConfig:
                           "gate 7.815 of a 3-D RGB-D residual) are outliers.", above=0)
     min_matches: int = opt(20, "Fewer static inlier matches than this after the motion-model search, the wider "
                            "search and PnP relocalisation: the frame is 'lost' (constant-velocity pose).", min=6)
-    depth_noise: float = opt(0.012, "A keypoint's depth is trusted to sigma = depth_noise x depth^2 metres (plus the "
-                             "depth's change over the keypoint's position uncertainty): structured-light sensors' "
-                             "random and systematic error at keypoints. Lower for a more accurate sensor.", above=0)
     keyframe_ratio: float = opt(0.75, "A new keyframe when the frame tracks fewer than this fraction of the "
                                 "reference keyframe's landmarks (ORB-SLAM2 RGB-D: 0.75).", above=0, max=1)
 
@@ -32,5 +29,5 @@ class BackendConfig:
     # A new keyframe at the latest this many frames after the last one.
     KEYFRAME_MAX_GAP: ClassVar[int] = 30
     # Virtual stereo baseline (m) of gtsam's RGB-D stereo factor (u_R = u - fx*b/depth).  Only a parametrisation: the
-    # depth's noise is depth_noise, carried to the disparity, independent of the pixel's (backend/tracking.information).
+    # depth's noise is Sequence.depth_noise, carried to the disparity, independent of the pixel's (backend/tracking.information).
     BASELINE: ClassVar[float] = 0.08

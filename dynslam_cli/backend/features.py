@@ -55,7 +55,7 @@ class Detector:
     distributes its keypoints over the image for the same reason: clustered keypoints constrain
     the pose poorly)."""
 
-    def __init__(self, n_features: int, width: int, height: int, cell: int = 40, depth_noise: float = 0.012):
+    def __init__(self, n_features: int, width: int, height: int, depth_noise: float, cell: int = 40):
         import cv2
 
         self.depth_noise = float(depth_noise)

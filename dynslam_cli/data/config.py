@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from dynslam_cli.config.fields import numbers, opt
 
@@ -20,6 +21,12 @@ class DataConfig:
     start: int = opt(0, "First frame index (after association).", min=0)
     frames: int = opt(0, "Number of frames to use; 0 = all.", min=0)
     stride: int = opt(1, "Use every S-th frame.", min=1)
+
+    # The depth's standard deviation at keypoints per metre^2 of depth (sigma = DEPTH_NOISE x depth^2, m: structured
+    # light), which the keyframe backend weighs depth against pixel positions by, for real sensors: their random and
+    # systematic error together, about ORB-SLAM2's RGB-D depth weight (docs/experiments.md).  A synthetic folder's
+    # synth.json gives its renderer's own (Sequence.depth_noise).  Not a key: no measured reason to change it yet.
+    DEPTH_NOISE: ClassVar[float] = 0.03
 
     def validate(self, key):
         """Cross-field and list rules (see config.fields)."""

@@ -35,13 +35,14 @@ class Sequence:
     ``name``, ``dataset`` (tum|bonn|synth), ``path`` (folder), ``spec`` (what the user typed),
     ``intrinsics``, ``distortion`` (the dataset's coefficients, OpenCV order; the frames are
     already undistorted when ``undistorted`` is true), ``timestamps``, ``gt_poses``,
-    ``groundtruth_file`` (the raw trajectory file or None) and ``has_gt_masks`` (the folder has
+    ``depth_noise`` (the depth's standard deviation per metre²: a synthetic folder's own, else
+    ``DataConfig.DEPTH_NOISE``), ``groundtruth_file`` (the raw trajectory file or None) and ``has_gt_masks`` (the folder has
     per-frame motion masks ``dynamic/``; ``has_instances``: instance ids ``instances/``).
     """
 
     def __init__(self, *, name: str, dataset: str, path: Path, spec: str, intrinsics: Intrinsics,
                  distortion: list[float], records: list[FrameRecord], depth_scale: float,
-                 max_depth: float = 0.0, groundtruth_file: Path | None = None,
+                 max_depth: float = 0.0, depth_noise: float | None = None, groundtruth_file: Path | None = None,
                  undistorter=None, has_gt_masks: bool = False, has_instances: bool = False,
                  total_pairs: int | None = None):
         self.name = name
@@ -53,6 +54,11 @@ class Sequence:
         self.records = records
         self.depth_scale = float(depth_scale)
         self.max_depth = float(max_depth)
+        if depth_noise is None:
+            from dynslam_cli.data.config import DataConfig
+
+            depth_noise = DataConfig.DEPTH_NOISE
+        self.depth_noise = float(depth_noise)
         self.groundtruth_file = groundtruth_file
         self._undistorter = undistorter
         self.has_gt_masks = bool(has_gt_masks)

@@ -415,6 +415,15 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
             raise DynslamError(f"{meta_file}: 'depth_scale' must be a number") from None
     if depth_scale <= 0:
         raise DynslamError(f"depth scale must be > 0, got {depth_scale}")
+    depth_noise = float(dc.DEPTH_NOISE)
+    sensor = meta.get("sensor") if meta is not None else None
+    if isinstance(sensor, dict) and sensor.get("depth_noise") is not None:  # the renderer's own noise model
+        try:
+            depth_noise = float(sensor["depth_noise"])
+        except (TypeError, ValueError):
+            raise DynslamError(f"{meta_file}: 'sensor.depth_noise' must be a number") from None
+        if not depth_noise > 0:  # a noiseless render: depth trusted to a tenth of a millimetre per metre^2
+            depth_noise = 1e-4
 
     def label_paths(sub: str) -> list[Path] | None:
         d = folder / sub
@@ -449,6 +458,6 @@ def read_folder(folder: Path, cfg, *, dataset: str, name: str, spec: str) -> Seq
     ]
     return Sequence(name=name, dataset=dataset, path=folder, spec=spec, intrinsics=intr,
                     distortion=distortion, records=records, depth_scale=depth_scale,
-                    max_depth=float(dc.max_depth), groundtruth_file=gt_file,
+                    max_depth=float(dc.max_depth), depth_noise=depth_noise, groundtruth_file=gt_file,
                     undistorter=undistorter, has_gt_masks=dyn_paths is not None,
                     has_instances=inst_paths is not None, total_pairs=len(pairs))

@@ -26,7 +26,7 @@ from dynslam_cli.utils.io import atomic_path
 # because both modules import this one (no import cycle, not even for type checking).
 
 STAMP_TOL_S = 5e-4  # a mask's timestamp matches a listed image within this (frames are ≥ 10 ms apart)
-RENDER_DEPTH_SCALE = 5000.0  # renders/<ts>_depth.png: uint16, metres × 5000 (run/dynamic.py)
+RENDER_DEPTH_SCALE = 5000.0  # renders/<ts>_depth.png: uint16, metres × 5000 (run/loop.py)
 DEPTH_CMAP = "viridis"
 
 

@@ -105,12 +105,12 @@ def identity_mismatch(old: dict, new: dict) -> Optional[str]:
     return None
 
 
-def save(path: Path, slam, next_frame: int, timings: dict, identity: dict, dynamic=None) -> None:
+def save(path: Path, slam, next_frame: int, timings: dict, identity: dict, loop) -> None:
     import torch
 
     state = {"identity": identity, "slam": slam.state_dict(), "next_frame": next_frame, "timings": timings,
              "torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state(), "py_rng": random.getstate(),
-             "dynamic": None if dynamic is None else dynamic.state_dict()}
+             "loop": loop.state_dict()}
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 

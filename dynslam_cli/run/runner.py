@@ -2,8 +2,8 @@
 
 ``run_sequence`` opens the sequence, takes the run folder (``run/folder.py``: a lock, and a refusal
 before anything is written when the folder already holds a run, unless ``overwrite`` or ``resume``),
-builds the SLAM system, processes every frame (static mode: Co-SLAM; dynamic mode: the motion module
-of ``run/dynamic.py`` decides which pixels are static), writes checkpoints every
+builds the SLAM system, processes every frame through the loop of ``run/loop.py`` (static mode: every
+pixel static; dynamic mode: the motion module decides which pixels are), writes checkpoints every
 ``run.checkpoint_every`` frames and at the end the trajectory, mesh, timing and run.json.  Every file
 is written atomically; run.json says ``completed`` only after every other file is written, ``failed``
 after an error and ``interrupted`` after Ctrl-C or ``stop_after`` frames.
@@ -171,7 +171,7 @@ class _Run:
                          "path": str(Path(seq.path).resolve()),
                          "groundtruth": None if seq.groundtruth_file is None
                          else str(Path(seq.groundtruth_file).resolve()),
-                         "frames_sha256": identity["sequence"]["frames_sha256"]},
+                         "frames_sha256": identity["sequence"]["frames_sha256"], "depth_noise": seq.depth_noise},
             "mode": cfg.run.mode, "variant": cfg.run.mode, "frames": self.n, "device": str(device),
             "seed": int(cfg.run.seed), "threads": threads, "versions": versions(), "started": _now(),
             "finished": None, "error": None,
@@ -220,24 +220,19 @@ class _Run:
         """The SLAM system (and motion loop), restored from ``state`` when resuming; the first frame to run."""
         import torch
 
+        from dynslam_cli.run.loop import TIMED, FrameLoop
         from dynslam_cli.slam.system import SLAM
 
         cfg, seq = self.cfg, self.seq
         seed_everything(int(cfg.run.seed))
-        self.slam = SLAM(cfg, seq.intrinsics, self.device, bounds=sequence_bounds(cfg, seq))
-        self.timings = {"track": [], "map": [], "frame": []}
-        if cfg.run.mode == "dynamic":
-            from dynslam_cli.run.dynamic import DynamicLoop
-
-            masks = self.out / "masks" if cfg.run.save_masks else None
-            self.loop = DynamicLoop(cfg, seq.intrinsics, self.slam, self.device, masks)
-            self.timings = {k: [] for k in ("segment", "encode", "classify", "track", "render", "check", "update",
-                                            "map", "frame")}
+        self.slam = SLAM(cfg, seq.intrinsics, self.device, bounds=sequence_bounds(cfg, seq), depth_noise=seq.depth_noise)
+        masks = self.out / "masks" if cfg.run.save_masks else None
+        self.loop = FrameLoop(cfg, seq.intrinsics, self.slam, self.device, masks)
+        self.timings = {k: [] for k in TIMED}
         if state is None:
             return 0
         self.slam.load_state_dict(state["slam"])
-        if self.loop is not None:
-            self.loop.load_state_dict(state["dynamic"])
+        self.loop.load_state_dict(state["loop"])
         self.timings = state["timings"]
         torch.set_rng_state(state["torch_rng"])
         np.random.set_state(state["np_rng"])
@@ -257,12 +252,6 @@ class _Run:
             self.bar.close()
             self.bar = None
 
-    def _step(self, i: int) -> dict:
-        if self.loop is not None:
-            return self.loop.process(self.seq[i], self.seq.stamps[i])
-        r = self.slam.process(self.seq[i])
-        return {"track": r.track.ms, "map": 0.0 if r.map is None else r.map.ms, "frame": r.ms, "_loss": r.track.loss}
-
     def _frames(self, start: int) -> int:
         """Process frames from ``start``; returns the next frame (``n`` unless stop_after stopped it)."""
         cfg, n = self.cfg, self.n
@@ -271,13 +260,13 @@ class _Run:
         else:
             self._open_bar(start)
         for i in range(start, n):
-            step = self._step(i)
+            step = self.loop.process(self.seq[i], self.seq.stamps[i])
             for k in self.timings:
                 self.timings[k].append(float(step[k]))
             done = i + 1
             if self.progress:
                 post = {"loss": f"{step['_loss']:.3f}"}
-                if self.loop is not None:
+                if self.loop.mm is not None:
                     post.update(dyn=step["_dynamic"], updates=len(self.loop.records))
                 if self.bar is None:
                     self._open_bar(done)
@@ -289,7 +278,7 @@ class _Run:
             periodic = cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n
             if periodic or stop:
                 checkpoint.save(self.ckpt, self.slam, done, self.timings, self.identity, self.loop)
-                if self.loop is not None:
+                if self.loop.mm is not None:
                     self.loop.write_updates(self.out / "classifier_updates.jsonl")
             if stop:
                 self._close_bar()
@@ -325,7 +314,7 @@ class _Run:
             "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
             "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
         }
-        if loop is not None:
+        if loop.mm is not None:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
             timing["classifier_updates"] = len(loop.records)
             timing["retracked_frames"] = sum(1 for r in loop.records if r.get("retracked"))

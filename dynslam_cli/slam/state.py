@@ -77,8 +77,10 @@ class CurrentFrame:
 class SlamState:
     """Camera, map, keyframes, poses and generators shared by tracking and mapping."""
 
-    def __init__(self, cfg, intrinsics, device: torch.device, bounds=None):
+    def __init__(self, cfg, intrinsics, device: torch.device, bounds=None, depth_noise: Optional[float] = None):
         self.cfg = cfg
+        # the sensor's depth noise per metre^2 the backend weighs depth by (Sequence.depth_noise; None = the default)
+        self.depth_noise = depth_noise
         self.intr = intrinsics
         self.device = torch.device(device)
         self.H, self.W = int(intrinsics.height), int(intrinsics.width)
@@ -137,7 +139,8 @@ class SlamState:
         """A keyframe backend for this camera (tracking.backend); stored as ``backend``."""
         i = self.intr
         kw = {} if first_pose is None else {"first_pose": first_pose}
-        self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend, **kw)
+        self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend, depth_noise=self.depth_noise,
+                               **kw)
         self.keyframes.landmarks = self.backend  # forgetting an instance drops its landmarks too
         return self.backend
 

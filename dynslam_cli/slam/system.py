@@ -38,8 +38,8 @@ class SLAM(SlamState):
     """One frame at a time: ``track`` (frontend), ``map`` (mapper), or both with ``process``;
     ``finish`` after the last; then ``trajectory`` and ``extract_mesh``."""
 
-    def __init__(self, cfg, intrinsics, device: torch.device, bounds=None):
-        super().__init__(cfg, intrinsics, device, bounds)
+    def __init__(self, cfg, intrinsics, device: torch.device, bounds=None, depth_noise=None):
+        super().__init__(cfg, intrinsics, device, bounds, depth_noise)
         self.frontend = Frontend(self)
         self.mapper = Mapper(self)
         self.backend_keyframe = False  # whether the last map() inserted a backend keyframe

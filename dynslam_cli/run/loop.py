@@ -1,4 +1,4 @@
-"""One frame of dynamic mode: the paper's 'learn to memorize and to forget' loop.
+"""The per-frame loop of both modes: the paper's 'learn to memorize and to forget' loop.
 
 Per frame: segment, encode and classify the instances (motion module) → track on the static
 pixels → render the map at the tracked pose and run the bidirectional inconsistency check → on a
@@ -6,7 +6,8 @@ contradiction update the classifier (with replay) and refresh every keyframe's u
 map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
 the keyframe's rays.  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
 classify, check and update), ``checkable`` (what the map can judge), ``stayed`` (stayed put) and
-``forget`` (keyframe rays masked or gone); this loop only drives them.
+``forget`` (keyframe rays masked or gone); this loop only drives them.  Static mode is the same
+loop without a motion module: every pixel is static, nothing is checked or forgotten.
 """
 
 from __future__ import annotations
@@ -36,17 +37,24 @@ CHECK_WARMUP = 5
 RETRACK_FRACTION = 0.02
 
 
-class DynamicLoop:
-    """Drives a :class:`~dynslam_cli.slam.system.SLAM` with a
-    :class:`~dynslam_cli.motion.module.MotionModule` frame by frame."""
+# What process() times, per frame (ms); the motion module's parts are 0 in static mode.
+TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", "map", "frame")
+
+
+class FrameLoop:
+    """Drives a :class:`~dynslam_cli.slam.system.SLAM` frame by frame, with a
+    :class:`~dynslam_cli.motion.module.MotionModule` in dynamic mode (``run.mode``; ``mm`` is None
+    in static mode)."""
 
     def __init__(self, cfg, intrinsics, slam, device, mask_dir: Optional[Path] = None):
-        from dynslam_cli.motion.module import MotionModule
-
         self.cfg = cfg
         self.slam = slam
-        self.mm = MotionModule(cfg, intrinsics, device)
-        self.mask_dir = mask_dir
+        self.mm = None
+        if cfg.run.mode == "dynamic":
+            from dynslam_cli.motion.module import MotionModule
+
+            self.mm = MotionModule(cfg, intrinsics, device)
+        self.mask_dir = mask_dir if self.mm is not None else None
         self.records: list[dict] = []
         self.width = int(intrinsics.width)
         self.still_frames = int(cfg.run.still_frames)
@@ -60,15 +68,16 @@ class DynamicLoop:
         return first_pose(frame) if self.slam.n_frames == 0 else self.slam.predict_pose()
 
     def process(self, frame, stamp: str) -> dict:
-        """Process one frame; returns the per-component timings (ms) and what happened."""
+        """Process one frame; returns the per-component timings (ms, :data:`TIMED`) and what happened."""
         t0 = time.perf_counter()
-        inst = self.mm.observe(frame, self._guess(frame))
-        tr = self.slam.track(frame, inst.static_mask)
+        inst = None if self.mm is None else self.mm.observe(frame, self._guess(frame))
+        static = None if inst is None else inst.static_mask
+        tr = self.slam.track(frame, static)
         t_track = tr.ms
         t_render = 0.0
         record = None
         retracked = False
-        if self.slam.n_frames > max(1, CHECK_WARMUP):  # a map built from one frame is too immature to judge
+        if inst is not None and self.slam.n_frames > max(1, CHECK_WARMUP):  # a one-frame map judges nothing
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
@@ -105,7 +114,10 @@ class DynamicLoop:
             rec["retracked"] = retracked
             self.records.append(rec)
         n_kf = len(self.slam.keyframes)
-        mr = self.slam.map(frame, inst.static_mask, inst.ids)
+        mr = self.slam.map(frame, static, None if inst is None else inst.ids)
+        if inst is None:
+            return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,
+                    "frame": (time.perf_counter() - t0) * 1e3, "_loss": tr.loss}
         if len(self.slam.keyframes) > n_kf:
             kf = self.slam.keyframes[-1]
             kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
@@ -142,8 +154,9 @@ class DynamicLoop:
         return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records))
 
     def state_dict(self) -> dict:
-        return {"motion": self.mm.state_dict(), "records": list(self.records)}
+        return {"motion": None if self.mm is None else self.mm.state_dict(), "records": list(self.records)}
 
     def load_state_dict(self, d: dict) -> None:
-        self.mm.load_state_dict(d["motion"])
+        if self.mm is not None:
+            self.mm.load_state_dict(d["motion"])
         self.records = list(d["records"])

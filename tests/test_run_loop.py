@@ -1,5 +1,6 @@
-"""Dynamic mode end to end (the motion module wired into the SLAM loop by ``run/dynamic.py``); its pieces are
-tested beside their modules (test_motion_module, test_motion_checkable, test_motion_stayed, test_motion_forget)."""
+"""The per-frame loop of both modes (``run/loop.py``): static mode is SLAM.process frame by frame; dynamic mode
+end to end (the motion module wired into it); the motion module's pieces are tested beside their modules
+(test_motion_module, test_motion_checkable, test_motion_stayed, test_motion_forget)."""
 
 import json
 
@@ -28,8 +29,33 @@ def _traj(path):
     return np.array([[float(v) for v in r] for r in rows])
 
 
+class TestFrameLoop:
+    def test_static_mode_is_slam_process_frame_by_frame(self):
+        import torch
+
+        from dynslam_cli.run.loop import TIMED, FrameLoop
+        from dynslam_cli.slam.system import SLAM
+        from dynslam_cli.slam.toyscene import TinyIntrinsics, ToyFrame, tiny_config, trajectory
+
+        intr = TinyIntrinsics(48, 36, f=20.0)
+        cfg = tiny_config(**{"run.mode": "static", "mapping.first_iters": 10, "tracking.iters": 2,
+                             "mapping.iters": 2, "mapping.every": 2, "mapping.keyframe_every": 2})
+        frames = [ToyFrame(i, p, intr) for i, p in enumerate(trajectory(4, step=0.01))]
+        torch.set_num_threads(1)
+        ref = SLAM(cfg, intr, torch.device("cpu"))
+        for f in frames:
+            ref.process(f)
+        slam = SLAM(cfg, intr, torch.device("cpu"))
+        loop = FrameLoop(cfg, intr, slam, torch.device("cpu"))
+        assert loop.mm is None
+        steps = [loop.process(f, str(f.index)) for f in frames]
+        assert all(set(TIMED) <= set(s) and s["segment"] == 0.0 and s["frame"] > 0 for s in steps)
+        assert np.array_equal(slam.trajectory(), ref.trajectory()) and len(slam.keyframes) == len(ref.keyframes)
+        assert loop.state_dict() == {"motion": None, "records": []}
+
+
 def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypatch):
-    monkeypatch.setattr("dynslam_cli.run.dynamic.RETRACK_FRACTION", 0.0001)
+    monkeypatch.setattr("dynslam_cli.run.loop.RETRACK_FRACTION", 0.0001)
     out = tmp_path / "dyn"
     res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out),
                                    "--save-masks", "-q"] + TINY)
