@@ -55,3 +55,13 @@ def test_pose_of_follows_the_keyframe_and_events_are_logged():
     assert np.allclose(s.pose_of(1), moved @ rel) and np.allclose(s.pose_of(0), moved) and s.n_frames == 2
     s.event(1, "lost", "too few matches")
     assert s.events == [{"frame": 1, "kind": "lost", "detail": "too few matches"}]
+
+
+def test_the_backend_weighs_depth_by_the_sequences_noise():
+    from dynslam_cli.data.config import DataConfig
+
+    cfg = tiny_config(**{"tracking.backend": True})
+    s = SlamState(cfg, INTR, torch.device("cpu"), depth_noise=0.002)
+    be = s.make_backend()
+    assert be.detector.depth_noise == 0.002 and s.keyframes.landmarks is be  # forgetting reaches its landmarks
+    assert SlamState(cfg, INTR, torch.device("cpu")).make_backend().detector.depth_noise == DataConfig.DEPTH_NOISE
