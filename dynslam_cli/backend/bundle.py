@@ -1,6 +1,8 @@
 """Local bundle adjustment with gtsam: the poses of a window of keyframes and the landmarks they
 see, keyframes outside the window that also see those landmarks held fixed, RGB-D stereo factors
-(``GenericStereoFactor3D``; a projection factor where a keypoint had no depth) under a Huber
+(``GenericStereoFactor3D`` with the covariance of independent pixel and depth noise, the depth's
+noise binned on a log scale so factors share noise models; a projection factor where a keypoint
+had no depth) under a Huber
 kernel, Levenberg-Marquardt with a bounded number of iterations; then the observations over the
 chi-square gate are dropped and it runs once more (ORB-SLAM's two passes)."""
 

@@ -1,6 +1,7 @@
 """Tracking one frame against the local map: landmarks projected from a predicted pose and
 matched to the frame's keypoints by descriptor within a search radius, a robust pose-only
-Gauss-Newton (RGB-D "virtual stereo" residuals, Huber kernel, chi-square outlier rounds), a wider
+Gauss-Newton (pixel and disparity residuals, each under its own noise: :func:`information`; Huber
+kernel, chi-square outlier rounds), a wider
 search and PnP relocalisation when too few inliers remain, and a clear ``lost`` otherwise.
 
 The pose-only step is a hand-written numpy Gauss-Newton rather than gtsam: it has 6 unknowns and a
