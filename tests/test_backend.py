@@ -162,29 +162,6 @@ def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
     assert set(np.flatnonzero(right)) <= set(be.lm.seen_by([0]))
 
 
-def test_readjust_bundle_adjusts_the_keyframes_that_lost_landmarks():
-    """forget() newly leaving out a keyframe's landmarks marks its window for bundle adjustment
-    again; readjust() runs it once (never for the first keyframe, which holds the gauge)."""
-    be = Backend(INTR, CFG)
-    ids = np.zeros((H, W), np.int32)
-    ids[:, W // 2:] = 7
-    for i, (rgb, d) in enumerate(FRAMES):
-        if be.track(i, rgb, d, None, defer=True).keyframe:
-            be.commit(None, ids)
-    assert len(be.kf_frame) >= 3
-    k = 1 if (be.lm.first_kf == 1).sum() > 20 else 2
-    before = be.kf_pose.copy()
-    assert be.readjust() == 0  # nothing forgotten yet
-    assert be.forget(int(be.kf_frame[0]), [7]) > 0 and be.readjust() == 0  # the first keyframe: no window
-    assert be.forget(int(be.kf_frame[k]), [7]) > 0
-    assert be.readjust() == 1 and be.readjust() == 0
-    assert not np.array_equal(be.kf_pose[k], before[k]) and np.array_equal(be.kf_pose[0], before[0])
-    for f, T in be.keyframe_poses().items():  # still where the truth is
-        assert np.linalg.norm(T[:3, 3] - _camera(f)[:3, 3]) < 0.01
-    be.forget(int(be.kf_frame[k]), [7])  # the same instance again: nothing new left out
-    assert be.readjust() == 0
-
-
 def test_correct_last_moves_the_motion_model():
     be = Backend(INTR, CFG)
     _run(be, FRAMES[:3])

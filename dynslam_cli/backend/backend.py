@@ -69,7 +69,6 @@ class Backend:
         self.prev_pose: Optional[np.ndarray] = None
         self.last_kf_index = -1
         self.lost_run = 0
-        self._forgotten: set[int] = set()  # keyframes whose landmarks forget() newly left out
         self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
         self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
         # frame_ref/frame_rel are the filled rows of these (capacity doubles: appending is amortised O(1))
@@ -212,22 +211,7 @@ class Backend:
         kf = np.flatnonzero(self.kf_frame == int(frame_index))
         if len(kf) == 0:
             return 0
-        before = self.lm.moving & self.lm.alive
-        n = self.lm.set_moving(int(kf[0]), instance_ids)
-        if (self.lm.moving & self.lm.alive & ~before).any():  # its window was adjusted with them
-            self._forgotten.add(int(kf[0]))
-        return n
-
-    def readjust(self) -> int:
-        """Local bundle adjustment again around every keyframe that lost landmarks to :meth:`forget`
-        since the last call, oldest first: their poses (and the frames tracked against them) were
-        estimated with landmarks on what is now known to move.  Returns the windows adjusted."""
-        done = sorted(self._forgotten)
-        self._forgotten.clear()
-        for kf in done:
-            if kf > 0:  # the first keyframe holds the gauge
-                self._local_ba(kf)
-        return sum(1 for kf in done if kf > 0)
+        return self.lm.set_moving(int(kf[0]), instance_ids)
 
     def trajectory(self) -> np.ndarray:
         """Every tracked frame's camera-to-world pose (F×4×4), each composed with its reference
@@ -322,16 +306,10 @@ class Backend:
         if kf == 0:
             return pose
         self.lm.cull_recent(kf)
-        self._local_ba(kf)
-        return self.kf_pose[kf].copy()
-
-    def _local_ba(self, kf: int) -> None:
-        """Local bundle adjustment of keyframe ``kf``'s window (its most covisible keyframes); the
-        first keyframe and the keyframes outside the window that see its landmarks stay fixed."""
         local = self._local_keyframes(self.cfg.window, kf)
         ids = self.lm.seen_by(local)
         if len(ids) == 0:
-            return
+            return pose
         observers = np.unique(self.lm.obs_kf[np.isin(self.lm.obs_lm, ids)])
         fixed = [int(k) for k in observers if int(k) not in local]
         optimise = [k for k in local if k != 0]
@@ -344,3 +322,4 @@ class Backend:
             self.kf_pose[k] = T
         self.lm.pos[res.ids] = res.pos
         self.lm.drop_observations(res.outlier)
+        return self.kf_pose[kf].copy()

@@ -67,7 +67,7 @@ class KeyframeStore:
     """The keyframes of a run (a sequence: ``len``, iteration, indexing and slices as a list) and,
     for the frames whose instances were registered (neural-map keyframes and backend keyframes),
     the instances' classifier features and class prior.  ``landmarks``: the backend (anything with
-    ``forget(frame_id, instance_ids)`` and ``readjust()``), or None without one."""
+    ``forget(frame_id, instance_ids)``), or None without one."""
 
     def __init__(self):
         self._frames: list[Keyframe] = []
@@ -130,14 +130,12 @@ class KeyframeStore:
 
     def forget(self, dynamic: dict) -> int:
         """``dynamic``: frame id -> the instance ids now called dynamic, for every registered frame.
-        The backend drops the landmarks made on them (and bundle-adjusts the keyframes that lost
-        some again); every keyframe's usable rays are recomputed
+        The backend drops the landmarks made on them; every keyframe's usable rays are recomputed
         (rays of, or within the mask dilation of, a dynamic instance; rays seen gone stay
         unusable; rays of instances called static again are usable again).  Returns rays masked."""
         if self.landmarks is not None:
             for fid, dyn_ids in dynamic.items():
                 self.landmarks.forget(fid, dyn_ids)
-            self.landmarks.readjust()  # the keyframes that lost landmarks: bundle-adjusted without them
         masked = 0
         for kf in self._frames:
             if kf.frame_id not in dynamic:
