@@ -20,19 +20,12 @@ from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
 from dynslam_cli.utils.threads import deterministic_torch
-from tiny_runs import check_from_frame_2, render_walker, tiny_sets
+from tiny_runs import early_check, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
 
 SMALL = tiny_sets(first_iters=15, ba_rays=4096, threads=2)
 
 
-@pytest.fixture(autouse=True)
-def early_check(monkeypatch):
-    check_from_frame_2(monkeypatch)
-
-
-@pytest.fixture(scope="module")
-def walker(tmp_path_factory):
-    return render_walker(tmp_path_factory, 80, 60, 7)
+walker = walker_fixture(80, 60, 7)
 
 
 def _outputs(run) -> dict:

@@ -5,23 +5,15 @@ end to end (the motion module wired into it); the motion module's pieces are tes
 import json
 
 import numpy as np
-import pytest
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
-from tiny_runs import check_from_frame_2, render_walker, tiny_sets
+from tiny_runs import early_check, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
 
 TINY = tiny_sets()
 
 
-@pytest.fixture(autouse=True)
-def early_check(monkeypatch):
-    check_from_frame_2(monkeypatch)
-
-
-@pytest.fixture(scope="module")
-def walker(tmp_path_factory):
-    return render_walker(tmp_path_factory, 96, 72, 10)
+walker = walker_fixture(96, 72, 10)
 
 
 def _traj(path):

@@ -1,6 +1,9 @@
 """Settings that make a dynamic-mode run of a few tiny synthetic frames take seconds (shared by
 the tests that run one end to end), the tiny walker scene they run on, and starting the motion
-check early for such short clips."""
+check early for such short clips (``early_check``: an autouse fixture for the modules that import
+it; ``walker_fixture``: a module-scoped fixture rendering the walker once)."""
+
+import pytest
 
 
 def tiny_sets(first_iters: int = 20, ba_rays: int = 256, threads: int = 1) -> list[str]:
@@ -16,6 +19,22 @@ def tiny_sets(first_iters: int = 20, ba_rays: int = 256, threads: int = 1) -> li
 def check_from_frame_2(monkeypatch) -> None:
     """The inconsistency check from frame 2 on (its warm-up is 5 frames): these clips are short."""
     monkeypatch.setattr("dynslam_cli.run.loop.CHECK_WARMUP", 2)
+
+
+@pytest.fixture(autouse=True)
+def early_check(monkeypatch):
+    """The check from frame 2 on, for every test of a module that imports this fixture."""
+    check_from_frame_2(monkeypatch)
+
+
+def walker_fixture(width: int, height: int, frames: int):
+    """A module-scoped fixture: the tiny walker scene at this size, rendered once per module."""
+
+    @pytest.fixture(scope="module")
+    def walker(tmp_path_factory):
+        return render_walker(tmp_path_factory, width, height, frames)
+
+    return walker
 
 
 def render_walker(tmp_path_factory, width: int, height: int, frames: int):
