@@ -506,8 +506,8 @@ def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:
 
 def backend_rows(cfg, intr, frames, reps, peaks) -> list[dict]:
     from dynslam_cli.backend.features import LEVELS, SCALE, Detector
-    from dynslam_cli.data.config import DataConfig
     from dynslam_cli.backend.tracking import optimize_pose
+    from dynslam_cli.data.config import DataConfig
 
     f = frames[0]
     det = Detector(cfg.backend.features, intr.width, intr.height, DataConfig.DEPTH_NOISE)

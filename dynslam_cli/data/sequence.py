@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dynslam_cli.data.config import DataConfig
 from dynslam_cli.data.types import Frame, Intrinsics
 from dynslam_cli.errors import DynslamError
 
@@ -42,7 +43,7 @@ class Sequence:
 
     def __init__(self, *, name: str, dataset: str, path: Path, spec: str, intrinsics: Intrinsics,
                  distortion: list[float], records: list[FrameRecord], depth_scale: float,
-                 max_depth: float = 0.0, depth_noise: float | None = None, groundtruth_file: Path | None = None,
+                 max_depth: float = 0.0, depth_noise: float = DataConfig.DEPTH_NOISE, groundtruth_file: Path | None = None,
                  undistorter=None, has_gt_masks: bool = False, has_instances: bool = False,
                  total_pairs: int | None = None):
         self.name = name
@@ -54,10 +55,6 @@ class Sequence:
         self.records = records
         self.depth_scale = float(depth_scale)
         self.max_depth = float(max_depth)
-        if depth_noise is None:
-            from dynslam_cli.data.config import DataConfig
-
-            depth_noise = DataConfig.DEPTH_NOISE
         self.depth_noise = float(depth_noise)
         self.groundtruth_file = groundtruth_file
         self._undistorter = undistorter
