@@ -458,19 +458,31 @@ def mapping_row(slam, cur, reps, peaks, where, sync) -> dict:
 def render_row(slam, reps, peaks, where, sync) -> dict:
     import torch
 
-    from dynslam_cli.slam.render import RENDER_COARSE, RENDER_FINE
+    from dynslam_cli.slam.render import RENDER_BLOCK, RENDER_COARSE, RENDER_FINE
 
     scale = min(1.0, slam.cfg.motion.check_width / float(slam.W))
     h, w = max(1, int(round(slam.H * scale))), max(1, int(round(slam.W * scale)))
     pose = slam.poses[0]
-    cost = counted(lambda: slam.render(pose, scale))
     grid = slam.model.grid
+    grid_call = grid.forward
+    n_pts = [0]  # points the grid encodes (the coarse sweep stops at each ray's first crossing)
+
+    def counting(x):
+        n_pts[0] += x.shape[0]
+        return grid_call(x)
+
+    grid.forward = counting
+    try:
+        cost = counted(lambda: slam.render(pose, scale))
+    finally:
+        del grid.forward
     if grid.resolve_impl(torch.zeros(1, 3, device=slam.device)) == "numba":
         L, _, F = grid.embeddings.shape
-        cost = cost + hashgrid_forward_cost(h * w * (RENDER_COARSE + RENDER_FINE), L, F)
+        cost = cost + hashgrid_forward_cost(n_pts[0], L, F)
     ms = median_ms(lambda: slam.render(pose, scale), reps, 1, sync)
     return make_row(f"check render {w}x{h}", where, ms, cost, peaks,
-                    f"{RENDER_COARSE} SDF-only + {RENDER_FINE} coloured samples per pixel, no gradients")
+                    f"up to {RENDER_COARSE} SDF-only samples per pixel ({RENDER_BLOCK} at a time, to the first "
+                    f"crossing; {n_pts[0] / (h * w):.0f} in all with the {RENDER_FINE} coloured), no gradients")
 
 
 def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:

@@ -13,6 +13,45 @@ from dynslam_cli.map.render import render_rays
 # (32 / 8 at check resolution; Co-SLAM renders 64 / 16).
 RENDER_COARSE = 32
 RENDER_FINE = 8
+# The coarse samples are evaluated this many at a time, near to far, and only on the rays without a crossing yet: the
+# same first crossing as evaluating all of them, at about two thirds of the cost (most rays cross by mid-range).
+RENDER_BLOCK = 8
+
+
+def _first_crossing(model, o: torch.Tensor, d: torch.Tensor, zc: torch.Tensor):
+    """The first front-to-back SDF crossing of each ray ``o + z d`` over the coarse distances ``zc``:
+    (index j of the sample before it, SDF at j and j + 1, whether the ray has one); j = 0 without.
+    Samples are evaluated in blocks of :data:`RENDER_BLOCK`, near to far, on the rays still without
+    a crossing; the result equals evaluating every sample of every ray."""
+    r, nc = len(d), len(zc)
+    dev = d.device
+    j = torch.zeros(r, dtype=torch.long, device=dev)
+    s0 = torch.zeros(r, device=dev)
+    s1 = torch.zeros(r, device=dev)
+    has = torch.zeros(r, dtype=torch.bool, device=dev)
+    todo = torch.arange(r, device=dev)
+    prev = None  # SDF of the todo rays at the sample before the block
+    for a in range(0, nc, RENDER_BLOCK):
+        if len(todo) == 0:
+            break
+        zb = zc[a:a + RENDER_BLOCK]
+        pts = o[:, None, :] + d[todo][:, None, :] * zb[None, :, None]
+        s = model(pts.reshape(-1, 3), color=False)[0].view(len(todo), len(zb))
+        first = a
+        if prev is not None:
+            s = torch.cat([prev[:, None], s], 1)
+            first = a - 1
+        cross = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
+        hit = cross.any(1)
+        k = cross.float().argmax(1)
+        rows = todo[hit]
+        j[rows] = first + k[hit]
+        s0[rows] = s[hit].gather(1, k[hit][:, None])[:, 0]
+        s1[rows] = s[hit].gather(1, k[hit][:, None] + 1)[:, 0]
+        has[rows] = True
+        todo = todo[~hit]
+        prev = s[~hit, -1]
+    return j, s0, s1, has
 
 
 @torch.no_grad()
@@ -36,17 +75,10 @@ def render_view(model, map_cfg, intr, pose_c2w: np.ndarray, scale: float, device
     nc, nf = RENDER_COARSE, RENDER_FINE
     zc = mp.near + (torch.arange(nc, device=device, dtype=torch.float32) + 0.5) / nc * (mp.far - mp.near)
     tr = model.truncation
-    chunk = max(1, 65536 // nc)
+    chunk = max(1, 65536 // RENDER_BLOCK)  # rays per pass: at most 64k points per model call
     for i in range(0, len(d), chunk):
         dd = d[i:i + chunk]
-        r = len(dd)
-        pts = o[:, None, :] + dd[:, None, :] * zc[None, :, None]
-        s = model(pts.reshape(-1, 3), color=False)[0].view(r, nc)
-        cross = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
-        has = cross.any(1)
-        j = cross.float().argmax(1)
-        s0 = s.gather(1, j[:, None])[:, 0]
-        s1 = s.gather(1, (j + 1)[:, None])[:, 0]
+        j, s0, s1, has = _first_crossing(model, o, dd, zc)
         z0 = zc[j]
         z1 = zc[j + 1]
         zs = z0 + (z1 - z0) * s0 / (s0 - s1).clamp_min(1e-6)
