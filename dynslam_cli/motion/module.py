@@ -150,12 +150,12 @@ class MotionModule:
             dynamic=dyn, probs=probs, static_mask=self._static_mask(seg.ids, dyn), class_ids=seg.class_ids,
             prior_probs=pp,
             timings={"segment": (t1 - t0) * 1e3, "encode": (t2 - t1) * 1e3, "classify": (t3 - t2) * 1e3},
+            features=feats,
         )
-        inst._feats = feats  # type: ignore[attr-defined]
         return inst
 
     def _feats_of(self, inst: FrameInstances) -> np.ndarray:
-        f = getattr(inst, "_feats", None)
+        f = inst.features
         return f if f is not None else self._features(inst.embeddings, inst.centres)
 
     def check_and_update(self, frame, inst: FrameInstances, pose_c2w: np.ndarray, rendered_depth: np.ndarray,
@@ -175,7 +175,7 @@ class MotionModule:
         # centres at the tracked pose
         inst.centres = instance_centres(frame.depth, inst.ids, inst.count, self.intr, pose_c2w)
         feats = self._features(inst.embeddings, inst.centres)
-        inst._feats = feats  # type: ignore[attr-defined]
+        inst.features = feats
         judged = res.judged if res.judged is not None else np.ones(inst.count, bool)
         labels = res.observed_moving
         if stationary is not None and len(stationary) == inst.count:  # stayed put: static at its place

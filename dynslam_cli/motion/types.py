@@ -47,6 +47,7 @@ class FrameInstances:
     class_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     prior_probs: Optional[np.ndarray] = None  # (K,) from the prior classifier, when configured
     timings: dict = field(default_factory=dict)  # component -> ms
+    features: Optional[np.ndarray] = None  # (K, F) the classifier's input (embedding, + centre when configured)
 
     @property
     def count(self) -> int:
