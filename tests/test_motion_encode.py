@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dynslam_cli.errors import DynslamError
-from dynslam_cli.motion.encode_base import instance_boxes, masked_crops
+from dynslam_cli.motion.encode_base import instance_boxes, masked_crops, normalise_batch
 from dynslam_cli.motion.encode_hist import ColorHistEncoder
 from dynslam_cli.motion.encode_onnx import OnnxEncoder, pool
 
@@ -46,6 +46,22 @@ def test_instance_boxes_and_masked_crops():
     # stacked masks give the same crops as the id map
     masks = np.stack([ids == 1, ids == 2])
     assert np.array_equal(masked_crops(rgb, masks, 32, 0.1, (9, 9, 9)), crops)
+
+
+def test_instance_boxes_of_absent_ids_are_zero():
+    _, ids = _two_instances()
+    ids[ids == 1] = 0  # id 1 absent, id 3 beyond the map
+    assert instance_boxes(ids, 3).tolist() == [[0, 0, 0, 0], [40, 35, 75, 55], [0, 0, 0, 0]]
+    assert instance_boxes(ids, 0).shape == (0, 4)
+
+
+def test_normalise_batch_is_the_formula_bit_for_bit():
+    crops = np.random.default_rng(0).integers(0, 256, (3, 8, 6, 3), dtype=np.uint8)
+    mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+    x = (crops.astype(np.float32) / 255.0 - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    out = normalise_batch(crops, mean, std)
+    assert out.shape == (3, 3, 8, 6) and out.dtype == np.float32 and out.flags.c_contiguous
+    assert np.array_equal(out, x.transpose(0, 3, 1, 2))
 
 
 # ---------------------------------------------------------------- EfficientNet-Lite0

@@ -43,22 +43,14 @@ def as_masks(ids_or_masks: np.ndarray) -> list[np.ndarray]:
 
 def instance_boxes(ids: np.ndarray, k: int) -> np.ndarray:
     """(k, 4) x0, y0, x1, y1 (exclusive) bounding boxes of ids 1..k; empty ids give zeros."""
-    h, w = ids.shape
+    from scipy.ndimage import find_objects
+
     boxes = np.zeros((k, 4), np.int64)
     if k == 0:
         return boxes
-    ys, xs = np.nonzero(ids)
-    lab = ids[ys, xs] - 1
-    x0 = np.full(k, w)
-    y0 = np.full(k, h)
-    x1 = np.zeros(k, np.int64)
-    y1 = np.zeros(k, np.int64)
-    np.minimum.at(x0, lab, xs)
-    np.minimum.at(y0, lab, ys)
-    np.maximum.at(x1, lab, xs + 1)
-    np.maximum.at(y1, lab, ys + 1)
-    boxes[:, 0], boxes[:, 1], boxes[:, 2], boxes[:, 3] = x0, y0, x1, y1
-    boxes[x1 == 0] = 0
+    for i, sl in enumerate(find_objects(np.asarray(ids), max_label=k)):
+        if sl is not None:
+            boxes[i] = sl[1].start, sl[0].start, sl[1].stop, sl[0].stop
     return boxes
 
 
@@ -97,7 +89,7 @@ def masked_crops(rgb: np.ndarray, ids_or_masks: np.ndarray, size: int, margin: f
         sl = (slice(iy0, iy1), slice(ix0, ix1))
         m = get(i, sl)
         patch = canvas[iy0 - sy0:iy1 - sy0, ix0 - sx0:ix1 - sx0]
-        patch[m] = rgb[sl][m]
+        np.copyto(patch, rgb[sl], where=np.asarray(m, bool)[..., None])
         interp = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
         out[i] = cv2.resize(canvas, (size, size), interpolation=interp)
     return out
@@ -111,10 +103,15 @@ def _mask_box(m: np.ndarray) -> tuple[int, int, int, int]:
 
 
 def normalise_batch(crops: np.ndarray, mean: Sequence[float], std: Sequence[float]) -> np.ndarray:
-    """(K, S, S, 3) uint8 → (K, 3, S, S) float32 ((x/255 − mean)/std)."""
-    x = crops.astype(np.float32) / 255.0
-    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
-    return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+    """(K, S, S, 3) uint8 → (K, 3, S, S) float32 ((x/255 − mean)/std), through a 256-entry table
+    per channel computed with the same float32 operations."""
+    v = np.arange(256, dtype=np.float32) / 255.0
+    lut = (v[:, None] - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)  # (256, 3)
+    c = np.asarray(crops)
+    out = np.empty((c.shape[0], 3, c.shape[1], c.shape[2]), np.float32)
+    for ch in range(3):
+        np.take(lut[:, ch], c[..., ch], out=out[:, ch])
+    return out
 
 
 def l2n(x: np.ndarray) -> np.ndarray:
