@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dynslam_cli.backend.features import SCALE
-from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, Camera, information
+from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, Camera, information, whitened_chi2
 
 
 @dataclass
@@ -37,13 +37,7 @@ def observation_chi2(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray
     """Whitened squared residual of each observation: camera ``Tcw[i]`` (world-to-camera, M×4×4)
     sees world point ``X[i]`` at ``uv[i]`` with ``depth[i]`` (0 = none) of standard deviation ``dsig[i]``."""
     pc = np.einsum("mij,mj->mi", Tcw[:, :3, :3], X) + Tcw[:, :3, 3]
-    z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
-    u = cam.fx * pc[:, 0] / z + cam.cx
-    v = cam.fy * pc[:, 1] / z + cam.cy
-    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, cam.bf / np.where(depth > 0, depth, 1.0) - cam.bf / z], 1)
-    out = (e * e * information(cam, depth, dsig, octave)).sum(1)
-    out[pc[:, 2] <= 1e-6] = np.inf
-    return out
+    return whitened_chi2(cam, pc, uv, depth, octave, dsig)
 
 
 def local_bundle_adjustment(cam: Camera, poses: dict, optimise, fixed, ids: np.ndarray, pos: np.ndarray,

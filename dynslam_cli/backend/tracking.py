@@ -41,12 +41,17 @@ def stereo_residuals(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray
     """Camera points and the residual observed - predicted (N×3): pixel (u, v) and the virtual
     stereo disparity bf/depth (the last is meaningless where ``depth`` is 0)."""
     pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    return pc, residuals(cam, pc, uv, depth)
+
+
+def residuals(cam: Camera, pc: np.ndarray, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Observed - predicted (N×3) of camera points ``pc`` seen at ``uv`` with ``depth``: pixel
+    (u, v) and disparity bf/depth (meaningless where ``depth`` is 0)."""
     z = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1e-6)
     u = cam.fx * pc[:, 0] / z + cam.cx
     v = cam.fy * pc[:, 1] / z + cam.cy
     disp = cam.bf / np.where(depth > 0, depth, 1.0)
-    e = np.stack([uv[:, 0] - u, uv[:, 1] - v, disp - cam.bf / z], 1)
-    return pc, e
+    return np.stack([uv[:, 0] - u, uv[:, 1] - v, disp - cam.bf / z], 1)
 
 
 def information(cam: Camera, depth: np.ndarray, dsig: np.ndarray, octave: np.ndarray) -> np.ndarray:
@@ -63,7 +68,12 @@ def information(cam: Camera, depth: np.ndarray, dsig: np.ndarray, octave: np.nda
 
 def chi2(cam: Camera, Tcw: np.ndarray, X, uv, depth, octave, dsig) -> np.ndarray:
     """Whitened squared error of each observation (:func:`information`)."""
-    pc, e = stereo_residuals(cam, Tcw, X, uv, depth)
+    return whitened_chi2(cam, X @ Tcw[:3, :3].T + Tcw[:3, 3], uv, depth, octave, dsig)
+
+
+def whitened_chi2(cam: Camera, pc: np.ndarray, uv, depth, octave, dsig) -> np.ndarray:
+    """:func:`chi2` of camera points ``pc``: infinite behind the camera."""
+    e = residuals(cam, pc, uv, depth)
     out = (e * e * information(cam, depth, dsig, octave)).sum(1)
     out[pc[:, 2] <= 1e-6] = np.inf
     return out

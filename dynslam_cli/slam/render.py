@@ -44,10 +44,10 @@ def _first_crossing(model, o: torch.Tensor, d: torch.Tensor, zc: torch.Tensor):
         cross = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
         hit = cross.any(1)
         k = cross.float().argmax(1)
-        rows = todo[hit]
-        j[rows] = first + k[hit]
-        s0[rows] = s[hit].gather(1, k[hit][:, None])[:, 0]
-        s1[rows] = s[hit].gather(1, k[hit][:, None] + 1)[:, 0]
+        rows, sh, kh = todo[hit], s[hit], k[hit][:, None]
+        j[rows] = first + kh[:, 0]
+        s0[rows] = sh.gather(1, kh)[:, 0]
+        s1[rows] = sh.gather(1, kh + 1)[:, 0]
         has[rows] = True
         todo = todo[~hit]
         prev = s[~hit, -1]
