@@ -122,7 +122,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
             static = ~masker(f)
             mask_ms.append((time.perf_counter() - t0) * 1000)
         depth = f.depth_full if depth_kind == "full" and f.depth_full is not None else f.depth
-        out = be.track(f.index, f.rgb, depth, static)
+        out = be.track(f.index, f.rgb, depth, static, stamp=f.timestamp)
         online.append(out.pose_c2w)
         track_ms.append(out.track_ms)
         if out.keyframe and out.ba_ms > 0:

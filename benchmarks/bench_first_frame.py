@@ -45,7 +45,7 @@ def camera_poses(spec: str) -> tuple:
                  depth_noise=seq.depth_noise)
     for f in seq:
         full = f.depth_full if f.depth_full is not None else f.depth
-        be.track(f.index, f.rgb, np.where(np.isfinite(full), full, 0).astype(np.float32))
+        be.track(f.index, f.rgb, np.where(np.isfinite(full), full, 0).astype(np.float32), stamp=f.timestamp)
     return cfg, seq, be.trajectory()[: len(seq)].copy()
 
 

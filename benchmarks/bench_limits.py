@@ -304,7 +304,7 @@ def capture_backend_calls(cfg, intr, frames) -> tuple[list, list]:
     try:
         be = bk.Backend((intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height), cfg.backend)
         for f in frames:
-            be.track(f.index, f.rgb, f.depth_full if f.depth_full is not None else f.depth)
+            be.track(f.index, f.rgb, f.depth_full if f.depth_full is not None else f.depth, stamp=f.timestamp)
     finally:
         trk.optimize_pose, bk.local_bundle_adjustment = real_pose, real_ba
     return poses, bas

@@ -110,3 +110,43 @@ class TestInformation:
             kp.dsig[:] = sig
             errs[name] = _errors(optimize_pose(CAM, start, X, kp, huber=2.8)[0], truth)[0]
         assert errs["modelled"] < 0.5 * errs["loose"], errs
+
+
+class TestPoseCovariance:
+    def test_inverse_of_the_numerical_information(self):
+        from dynslam_cli.backend.motion import so3_exp
+        from dynslam_cli.backend.tracking import information, pose_covariance, stereo_residuals
+
+        truth, X, kp, _ = _scene(80, seed=4)
+        kp.depth[::3] = 0.0  # some keypoints without depth: pixels only
+        Tcw = np.linalg.inv(truth)
+        info = information(CAM, kp.depth, kp.dsig, kp.octave)
+        J = np.zeros((len(X), 3, 6))
+        eps = 1e-7
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = eps
+            D = np.eye(4)
+            D[:3, :3], D[:3, 3] = so3_exp(d[3:]), d[:3]
+            _, e1 = stereo_residuals(CAM, D @ Tcw, X, kp.uv, kp.depth)
+            _, e0 = stereo_residuals(CAM, Tcw, X, kp.uv, kp.depth)
+            J[:, :, i] = -(e1 - e0) / eps  # residual = observed - predicted
+        J[kp.depth <= 0, 2, :] = 0
+        H = np.einsum("nki,nk,nkj->ij", J, info, J)
+        C = pose_covariance(CAM, truth, X, kp)
+        assert C.shape == (6, 6) and np.allclose(C, C.T)
+        assert np.allclose(C, np.linalg.inv(H), rtol=1e-3, atol=1e-12)
+
+    def test_more_points_fix_the_pose_better(self):
+        from dynslam_cli.backend.tracking import pose_covariance
+
+        truth, X, kp, _ = _scene(300, seed=5)
+        few = pose_covariance(CAM, truth, X[:30], kp.subset(np.arange(30)))
+        many = pose_covariance(CAM, truth, X, kp)
+        assert np.trace(many) < 0.2 * np.trace(few)
+
+    def test_too_few_points(self):
+        from dynslam_cli.backend.tracking import pose_covariance
+
+        truth, X, kp, _ = _scene(10, seed=6)
+        assert np.isinf(pose_covariance(CAM, truth, X[:2], kp.subset(np.arange(2)))).all()

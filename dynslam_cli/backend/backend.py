@@ -1,8 +1,9 @@
 """`Backend`: ORB-SLAM2-style RGB-D tracking and local mapping on static pixels.
 
-Per frame: ORB keypoints on static pixels → constant-velocity guess → match the local map (the
-landmarks of the reference keyframe's covisible keyframes) → robust pose-only optimisation (wider
-search, then PnP relocalisation, else ``lost``) → keyframe decision by overlap → on a keyframe:
+Per frame: ORB keypoints on static pixels → the motion model's guess (``motion.MotionFilter``) →
+match the local map (the landmarks of the reference keyframe's covisible keyframes) → robust
+pose-only optimisation (wider search, then PnP relocalisation, else ``lost``) → the pose fused with
+the motion model's prediction → keyframe decision by overlap → on a keyframe:
 its observations, new landmarks from its unmatched keypoints with depth, culling, and local bundle
 adjustment of the newest keyframes' window (gtsam).
 
@@ -25,7 +26,8 @@ from dynslam_cli.backend.config import BackendConfig
 from dynslam_cli.backend.features import Detector, Keypoints, backproject, pixel_index
 from dynslam_cli.backend.keyframes import need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
-from dynslam_cli.backend.tracking import Camera, track_frame
+from dynslam_cli.backend.motion import MotionFilter
+from dynslam_cli.backend.tracking import Camera, pose_covariance, track_frame
 
 
 @dataclass
@@ -69,6 +71,7 @@ class Backend:
         self.prev_pose: Optional[np.ndarray] = None
         self.last_kf_index = -1
         self.lost_run = 0
+        self.motion = MotionFilter()
         self.frame_ref = np.zeros(0, np.int64)  # per tracked frame: its reference keyframe (-1 = none)
         self.frame_rel = np.zeros((0, 4, 4))  # ... and its pose relative to it (absolute when none)
         # frame_ref/frame_rel are the filled rows of these (capacity doubles: appending is amortised O(1))
@@ -78,10 +81,11 @@ class Backend:
 
     # -- public ------------------------------------------------------------------------------------
     def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
-              defer: bool = False) -> TrackOutcome:
+              defer: bool = False, stamp: Optional[float] = None) -> TrackOutcome:
         """Track frame ``index`` (RGB H×W×3 uint8, depth H×W metres with 0 = none, ``static_mask``
-        H×W bool: True where the pixel may be used; None = all).  ``keyframe`` in the outcome: the
-        frame became a keyframe (local BA ran) or, with ``defer``, is due to become one at
+        H×W bool: True where the pixel may be used; None = all; ``stamp``: its time in seconds, for
+        the motion model; None = frames 1/30 s apart).  ``keyframe`` in the outcome: the frame
+        became a keyframe (local BA ran) or, with ``defer``, is due to become one at
         :meth:`commit`."""
         t0 = time.perf_counter()
         self._pending = None
@@ -89,6 +93,8 @@ class Backend:
         self.lm.compact()  # no landmark id is held outside the map now
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
+        if self.last_pose is None:
+            self.motion.restart(stamp)
         if len(self.kf_frame) == 0:
             # the first keyframe: at the first pose, or where the caller's corrections of the frames
             # tracked without it (correct_last) put the camera
@@ -102,7 +108,7 @@ class Backend:
             if not defer:
                 self.commit()
             return out
-        guess = self._predict()
+        guess = self.motion.predict(self.last_pose, stamp)
         ids = self.lm.seen_by(self._local_keyframes(2 * self.cfg.window))
         tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
                          lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.SEARCH_PX,
@@ -115,11 +121,13 @@ class Backend:
                 t1 = time.perf_counter()
                 self._insert_keyframe(index, guess, kp, np.zeros(0, np.int64), np.zeros(0, np.int64))
                 self.lost_run = 0
+                self.motion.restart()
                 return self._out(guess, 0, True, True, tr.reason + "; new keyframe at the predicted pose", t0,
                                  ba_ms=(time.perf_counter() - t1) * 1000)
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
+        pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
         n_obs = self.lm.n_obs()
@@ -131,11 +139,11 @@ class Backend:
         new_kf, why = need_keyframe(len(tr.lm), ref_tracked, index - self.last_kf_index,
                                     int((untracked & (kp.depth > 0)).sum()), n_kf, self.cfg.keyframe_ratio,
                                     self.cfg.KEYFRAME_MAX_GAP)
-        self._advance(tr.pose)
+        self._advance(pose)
         reason = tr.reason + (f"; keyframe ({why})" if new_kf else "")
-        out = self._out(tr.pose, len(tr.lm), False, new_kf, reason, t0)
+        out = self._out(pose, len(tr.lm), False, new_kf, reason, t0)
         if new_kf:
-            self._pending = (int(index), tr.pose.copy(), kp, tr.lm, tr.kp)
+            self._pending = (int(index), pose.copy(), kp, tr.lm, tr.kp)
             if not defer:
                 inserted, ba_ms, pose = self.commit()
                 out.pose_c2w, out.ba_ms = pose, ba_ms
@@ -159,10 +167,11 @@ class Backend:
                          self.cfg.huber_px, self.cfg.min_matches, seed=index)
         if tr.lost:
             return None
-        self.correct_last(tr.pose)
+        pose = self._fuse(tr, kp, redo=True)
+        self.correct_last(pose)
         if self._pending is not None and self._pending[0] == index:
-            self._pending = (index, tr.pose.copy(), kp, tr.lm, tr.kp)
-        return tr.pose.copy()
+            self._pending = (index, pose.copy(), kp, tr.lm, tr.kp)
+        return pose.copy()
 
     def commit(self, static_mask: Optional[np.ndarray] = None, instance_ids: Optional[np.ndarray] = None
                ) -> tuple[bool, float, Optional[np.ndarray]]:
@@ -235,6 +244,7 @@ class Backend:
                   "frame_ref": self.frame_ref.copy(), "frame_rel": self.frame_rel.copy(),
                   "last_pose": nan if self.last_pose is None else self.last_pose.copy(),
                   "prev_pose": nan if self.prev_pose is None else self.prev_pose.copy()})
+        d.update({f"motion.{k}": v for k, v in self.motion.state_dict().items()})
         return d
 
     def load_state_dict(self, d: dict) -> None:
@@ -250,8 +260,18 @@ class Backend:
         last, prev = np.array(d["last_pose"], np.float64), np.array(d["prev_pose"], np.float64)
         self.last_pose = None if np.isnan(last).any() else last
         self.prev_pose = None if np.isnan(prev).any() else prev
+        self.motion.load_state_dict({k[7:]: v for k, v in d.items() if k.startswith("motion.")})
 
     # -- internals ---------------------------------------------------------------------------------
+    def _fuse(self, tr, kp: Keypoints, redo: bool = False) -> np.ndarray:
+        """The tracked pose fused with the motion model's prediction (a relocalised frame: the
+        tracked pose, and the motion is learnt afresh)."""
+        if tr.reason == "relocalised":
+            self.motion.restart()
+            return tr.pose.copy()
+        cov = pose_covariance(self.cam, tr.pose, self.lm.pos[tr.lm], kp.subset(tr.kp))
+        return self.motion.update(tr.pose, cov, redo=redo)
+
     def _out(self, pose, inliers, lost, kf, reason, t0, ba_ms=0.0) -> TrackOutcome:
         ref = self.ref_kf if len(self.kf_frame) else -1
         rel = pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ pose

@@ -79,6 +79,44 @@ def whitened_chi2(cam: Camera, pc: np.ndarray, uv, depth, octave, dsig) -> np.nd
     return out
 
 
+def pose_jacobian(cam: Camera, pc: np.ndarray, stereo: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) derivative of the predicted (u, v, disparity) of camera points ``pc`` with respect
+    to the left perturbation (rho, phi) of the world-to-camera transform; the disparity row is 0
+    where ``stereo`` is False (no depth)."""
+    n = len(pc)
+    x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+    Jp = np.zeros((n, 3, 3))
+    Jp[:, 0, 0] = cam.fx / z
+    Jp[:, 0, 2] = -cam.fx * x / z ** 2
+    Jp[:, 1, 1] = cam.fy / z
+    Jp[:, 1, 2] = -cam.fy * y / z ** 2
+    Jp[:, 2, 2] = -cam.bf / z ** 2
+    Jp[~stereo, 2, :] = 0
+    skew = np.zeros((n, 3, 3))  # -[pc]x
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
+    return np.concatenate([Jp, Jp @ skew], 2)
+
+
+def pose_covariance(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints) -> np.ndarray:
+    """Covariance (6x6) of the pose-only estimate ``T_c2w`` from world points ``X`` seen at
+    keypoints ``kp`` (its inliers), in :func:`optimize_pose`'s parametrisation: the inverse of the
+    Gauss-Newton information under :func:`information`'s noise.  Infinite where the points do not
+    fix the pose (fewer than 3, or a rank-deficient information)."""
+    Tcw = np.linalg.inv(np.asarray(T_c2w, np.float64))
+    pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    front = pc[:, 2] > 1e-6
+    if int(front.sum()) < 3:
+        return np.full((6, 6), np.inf)
+    stereo = kp.depth[front] > 0
+    J = pose_jacobian(cam, pc[front], stereo)
+    info = information(cam, kp.depth[front], kp.dsig[front], kp.octave[front])
+    H = np.einsum("nki,nk,nkj->ij", J, info, J)
+    if np.linalg.matrix_rank(H) < 6:
+        return np.full((6, 6), np.inf)
+    return np.linalg.inv(H)
+
+
 def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, huber: float,
                   rounds: int = 4, iters: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """Robust pose-only optimisation of camera ``T_c2w`` observing world points ``X`` at keypoints
@@ -105,19 +143,7 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
             if robust:
                 s = np.sqrt(np.maximum(c2, 1e-18))
                 w = w * np.where(s <= np.sqrt(th), 1.0, np.sqrt(th) / s)[:, None]
-            zs = np.where(front, z, 1.0)
-            x, y = pc[:, 0], pc[:, 1]
-            Jp = np.zeros((n, 3, 3))
-            Jp[:, 0, 0] = cam.fx / zs
-            Jp[:, 0, 2] = -cam.fx * x / zs ** 2
-            Jp[:, 1, 1] = cam.fy / zs
-            Jp[:, 1, 2] = -cam.fy * y / zs ** 2
-            Jp[:, 2, 2] = -cam.bf / zs ** 2
-            Jp[~stereo, 2, :] = 0
-            skew = np.zeros((n, 3, 3))  # -[pc]x
-            skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
-            skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
-            J = np.concatenate([Jp, Jp @ skew], 2)  # d(pred)/d(rho, phi), left perturbation of Tcw
+            J = pose_jacobian(cam, np.where(front[:, None], pc, [0.0, 0.0, 1.0]), stereo)
             Jw = (J * w[:, :, None]).reshape(-1, 6)
             H = Jw.T @ J.reshape(-1, 6)
             g = Jw.T @ e.reshape(-1)

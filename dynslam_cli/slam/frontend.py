@@ -191,7 +191,7 @@ class Frontend:
         finds due is inserted by map(), with the frame's final static mask."""
         full = getattr(frame, "depth_full", None)
         depth = cur.depth_np if full is None else np.where(np.isfinite(full), full, 0).astype(np.float32)
-        return self.s.backend.track(cur.idx, cur.rgb_np, depth, cur.mask, defer=True)
+        return self.s.backend.track(cur.idx, cur.rgb_np, depth, cur.mask, defer=True, stamp=cur.timestamp)
 
     def retrack(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
         """Track the last tracked frame again (e.g. with a corrected static mask), replacing its
