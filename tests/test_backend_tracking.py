@@ -114,7 +114,7 @@ class TestInformation:
 
 class TestPoseCovariance:
     def test_inverse_of_the_numerical_information(self):
-        from dynslam_cli.backend.motion import so3_exp
+        from dynslam_cli.geometry.lie import so3_exp_np as so3_exp
         from dynslam_cli.backend.tracking import information, pose_covariance, stereo_residuals
 
         truth, X, kp, _ = _scene(80, seed=4)

@@ -1,7 +1,8 @@
 import numpy as np
 import torch
 
-from dynslam_cli.geometry.lie import inv_np, se3_exp, se3_exp_np, se3_log, se3_log_np, so3_exp, so3_log
+from dynslam_cli.geometry.lie import (inv_np, se3_exp, se3_exp_np, se3_log, se3_log_np, so3_exp, so3_exp_np, so3_log,
+                                      so3_log_np)
 
 
 def test_se3_exp_log_round_trip_random_and_small():
@@ -33,3 +34,21 @@ def test_se3_exp_gradient_matches_finite_differences_at_zero_and_away():
     jac = torch.autograd.functional.jacobian(lambda v: se3_exp(v)[:3, 3], x)
     assert torch.allclose(jac[:, :3], torch.eye(3, dtype=torch.float64))
     assert torch.isfinite(se3_log(se3_exp(x)).sum())
+
+
+class TestSo3Numpy:
+    def test_agrees_with_the_torch_maps(self):
+        phi = np.array([0.3, -1.1, 0.5])
+        R = so3_exp(torch.as_tensor(phi)).numpy()
+        assert np.allclose(so3_exp_np(phi), R, atol=1e-12) and np.allclose(so3_log_np(R), phi, atol=1e-10)
+
+    def test_round_trip(self):
+        rng = np.random.default_rng(0)
+        for phi in [np.zeros(3), np.array([1e-10, 0, 0]), *rng.normal(0, 1.0, (20, 3)), np.array([0, 0, np.pi - 1e-8])]:
+            R = so3_exp_np(phi)
+            assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1)
+            assert np.allclose(so3_exp_np(so3_log_np(R)), R, atol=1e-7)
+
+    def test_known_values(self):
+        assert np.allclose(so3_exp_np(np.array([0, 0, np.pi / 2])), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+        assert np.allclose(so3_log_np(np.diag([1.0, -1.0, -1.0])), [np.pi, 0, 0], atol=1e-6)  # half turn

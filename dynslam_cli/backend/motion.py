@@ -28,6 +28,8 @@ from typing import Optional
 
 import numpy as np
 
+from dynslam_cli.geometry.lie import so3_exp_np, so3_log_np
+
 # White-noise acceleration (standard deviation) the motion model allows, m/s² and rad/s²: generous for a hand-held or
 # robot camera (the Bonn crowd clip's ground truth: 0.3 m/s², about 2 rad/s² with the motion capture's noise;
 # synthetic scenes: 0.3-2 m/s², 0.3-2.5 rad/s²).
@@ -41,29 +43,6 @@ GATE = 22.46
 V0, W0 = 1.0, 1.0
 # Frame interval assumed when a frame has no timestamp (s).
 DT_DEFAULT = 1.0 / 30.0
-
-
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(phi))
-    if th < 1e-12:
-        return np.eye(3)
-    k = np.asarray(phi, np.float64) / th
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    c = float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
-    th = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-9:
-        return 0.5 * w
-    if np.pi - th < 1e-6:  # half turn: the axis from the symmetric part
-        a = np.sqrt(np.maximum((np.diag(R) + 1) / 2, 0))
-        i = int(np.argmax(a))
-        col = (R[:, i] + np.eye(3)[:, i]) / 2
-        return th * col / np.linalg.norm(col)
-    return th / (2 * np.sin(th)) * w
 
 
 def world_covariance(cov_cam: np.ndarray, T_c2w: np.ndarray) -> np.ndarray:
@@ -122,7 +101,7 @@ class MotionFilter:
         last = np.asarray(last_pose, np.float64)
         pose = np.eye(4)
         pose[:3, 3] = last[:3, 3] + self.v * dt
-        pose[:3, :3] = so3_exp(self.w * dt) @ last[:3, :3]
+        pose[:3, :3] = so3_exp_np(self.w * dt) @ last[:3, :3]
         F = np.eye(12)
         F[0:3, 6:9] = dt * np.eye(3)
         F[3:6, 9:12] = dt * np.eye(3)
@@ -153,10 +132,10 @@ class MotionFilter:
         if redo and self._measured:
             self.raw.pop()
         self._measured = True
-        self.raw.append((meas[:3, 3].copy(), so3_log(meas[:3, :3]), float(np.trace(C[:3, :3])) / 3,
+        self.raw.append((meas[:3, 3].copy(), so3_log_np(meas[:3, :3]), float(np.trace(C[:3, :3])) / 3,
                          float(np.trace(C[3:, 3:])) / 3))
         C = self._calibrated(C)
-        y = np.concatenate([meas[:3, 3] - prior[:3, 3], so3_log(meas[:3, :3] @ prior[:3, :3].T)])
+        y = np.concatenate([meas[:3, 3] - prior[:3, 3], so3_log_np(meas[:3, :3] @ prior[:3, :3].T)])
         S = P[:6, :6] + C
         try:
             nis = float(y @ np.linalg.solve(S, y))
@@ -172,7 +151,7 @@ class MotionFilter:
         dx = K @ y
         out = np.eye(4)
         out[:3, 3] = prior[:3, 3] + dx[:3]
-        out[:3, :3] = so3_exp(dx[3:6]) @ prior[:3, :3]
+        out[:3, :3] = so3_exp_np(dx[3:6]) @ prior[:3, :3]
         self.v, self.w = v + dx[6:9], w + dx[9:12]
         IKH = np.eye(12)
         IKH[:, :6] -= K
@@ -200,8 +179,8 @@ class MotionFilter:
         c = np.array([r[0] for r in self.raw])
         phi = np.array([r[1] for r in self.raw])
         # orientations as small rotations from the newest one: a smooth track near zero
-        ref = so3_exp(phi[-1]).T
-        rel = np.array([so3_log(so3_exp(p) @ ref) for p in phi])
+        ref = so3_exp_np(phi[-1]).T
+        rel = np.array([so3_log_np(so3_exp_np(p) @ ref) for p in phi])
         g = np.ones(6)
         for blk, track, col in ((slice(0, 3), c, 2), (slice(3, 6), rel, 3)):
             formal = float(np.median([r[col] for r in self.raw]))

@@ -16,6 +16,7 @@ import numpy as np
 
 from dynslam_cli.backend.features import SCALE, Keypoints, hamming, project
 from dynslam_cli.data.types import Intrinsics
+from dynslam_cli.geometry.lie import so3_exp_np
 
 CHI2_STEREO = 7.815  # 95 % gate of a 3-dof residual (u, v, u_R)
 CHI2_MONO = 5.991  # 2 dof
@@ -26,15 +27,6 @@ class Camera(Intrinsics):
     """The camera's pinhole intrinsics and the virtual stereo focal-baseline product ``bf`` (px·m)."""
 
     bf: float
-
-
-def _rodrigues(phi: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(phi))
-    if th < 1e-12:
-        return np.eye(3)
-    k = phi / th
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
 
 
 def stereo_residuals(cam: Camera, Tcw: np.ndarray, X: np.ndarray, uv: np.ndarray, depth: np.ndarray):
@@ -150,7 +142,7 @@ def optimize_pose(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, 
             if w[:, 0].sum() <= 0 or np.linalg.matrix_rank(H) < 6:
                 break
             d = np.linalg.solve(H, g)
-            R = _rodrigues(d[3:])
+            R = so3_exp_np(d[3:])
             Tcw = np.block([[R @ Tcw[:3, :3], (R @ Tcw[:3, 3] + d[:3])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
             if np.linalg.norm(d) < 1e-8:
                 break

@@ -122,6 +122,31 @@ def se3_log_np(T) -> np.ndarray:
     return se3_log(torch.as_tensor(np.asarray(T, dtype=np.float64))).numpy()
 
 
+def so3_exp_np(phi) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``phi`` (numpy, Rodrigues)."""
+    th = float(np.linalg.norm(phi))
+    if th < 1e-12:
+        return np.eye(3)
+    k = np.asarray(phi, np.float64) / th
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
+
+
+def so3_log_np(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of the rotation matrix ``R`` (numpy; a half turn's axis from the symmetric part)."""
+    c = float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
+    th = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-9:
+        return 0.5 * w
+    if np.pi - th < 1e-6:  # half turn: the axis from the symmetric part
+        a = np.sqrt(np.maximum((np.diag(R) + 1) / 2, 0))
+        i = int(np.argmax(a))
+        col = (R[:, i] + np.eye(3)[:, i]) / 2
+        return th * col / np.linalg.norm(col)
+    return th / (2 * np.sin(th)) * w
+
+
 def inv_np(T: np.ndarray) -> np.ndarray:
     """Inverse of a (..., 4, 4) rigid transform (numpy)."""
     T = np.asarray(T, dtype=np.float64)
