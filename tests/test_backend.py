@@ -233,3 +233,15 @@ def test_frame_rows_append_and_survive_a_state_round_trip():
         other._append_frame(int(r), T)
     assert np.array_equal(other.frame_ref, refs) and np.array_equal(other.frame_rel[100:], rels[100:])
     assert np.array_equal(other.frame_rel[99], np.eye(4)) and np.array_equal(other.frame_rel[:99], rels[:99])
+
+
+def test_state_without_a_motion_model_loads():
+    """A checkpoint written before the motion model existed resumes; its filter starts afresh."""
+    be = Backend(INTR, CFG)
+    _run(be, FRAMES[:4])
+    old = {k: v for k, v in be.state_dict().items() if not k.startswith("motion.")}
+    be2 = Backend(INTR, CFG)
+    be2.load_state_dict(old)
+    assert not be2.motion.v.any() and np.array_equal(be2.last_pose, be.last_pose)
+    assert not be2.track(4, *FRAMES[4]).lost
+

@@ -260,7 +260,9 @@ class Backend:
         last, prev = np.array(d["last_pose"], np.float64), np.array(d["prev_pose"], np.float64)
         self.last_pose = None if np.isnan(last).any() else last
         self.prev_pose = None if np.isnan(prev).any() else prev
-        self.motion.load_state_dict({k[7:]: v for k, v in d.items() if k.startswith("motion.")})
+        motion = {k[7:]: v for k, v in d.items() if k.startswith("motion.")}
+        if motion:  # a checkpoint from before the motion model: it starts afresh
+            self.motion.load_state_dict(motion)
 
     # -- internals ---------------------------------------------------------------------------------
     def _fuse(self, tr, kp: Keypoints, redo: bool = False) -> np.ndarray:
