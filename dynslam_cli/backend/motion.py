@@ -83,9 +83,7 @@ class MotionFilter:
 
     def __init__(self, accel: float = ACCEL, ang_accel: float = ANG_ACCEL):
         self.accel, self.ang_accel = float(accel), float(ang_accel)
-        self.v = np.zeros(3)
-        self.w = np.zeros(3)
-        self.P = np.diag([0.0] * 6 + [V0 ** 2] * 3 + [W0 ** 2] * 3)
+        self._unknown_velocity()
         self.stamp: Optional[float] = None
         self.raw: deque = deque(maxlen=WINDOW)  # (centre, rotation vector, centre variance, rotation variance)
         self._prior: Optional[tuple] = None  # (pose, P, v, w) predicted for the frame being tracked
@@ -143,8 +141,7 @@ class MotionFilter:
             nis = np.inf
         if not np.isfinite(nis) or nis > GATE:
             # the motion model failed here: the measurement as it is, the velocity learnt afresh
-            self.v, self.w = np.zeros(3), np.zeros(3)
-            self.P = np.diag([0.0] * 6 + [V0 ** 2] * 3 + [W0 ** 2] * 3)
+            self._unknown_velocity()
             self.P[:6, :6] = C
             return meas.copy()
         K = P[:, :6] @ np.linalg.inv(S)
@@ -164,11 +161,15 @@ class MotionFilter:
         frame it restarts at (None = keep the last)."""
         if stamp is not None:
             self.stamp = float(stamp)
-        self.v, self.w = np.zeros(3), np.zeros(3)
-        self.P = np.diag([0.0] * 6 + [V0 ** 2] * 3 + [W0 ** 2] * 3)
+        self._unknown_velocity()
         self.raw.clear()
         self._prior = None
         self._measured = False
+
+    def _unknown_velocity(self) -> None:
+        """Zero velocity of standard deviation V0 / W0; the pose itself exact."""
+        self.v, self.w = np.zeros(3), np.zeros(3)
+        self.P = np.diag([0.0] * 6 + [V0 ** 2] * 3 + [W0 ** 2] * 3)
 
     # -- the tracked poses' white noise --------------------------------------------------------
     def _calibrated(self, C: np.ndarray) -> np.ndarray:
