@@ -20,6 +20,17 @@ def test_oneblob_values_and_gradient():
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
+def test_oneblob_without_gradient_gives_the_same_bits_and_leaves_x_alone():
+    enc = OneBlob(16, 3)
+    x = torch.rand(5000, 3, generator=torch.Generator().manual_seed(0)) * 1.4 - 0.2  # some outside [0, 1]
+    x0 = x.clone()
+    with_grad = enc(x.clone().requires_grad_(True)).detach()
+    without = enc(x)  # the in-place path
+    assert torch.equal(without, with_grad) and torch.equal(x, x0)
+    with torch.no_grad():
+        assert torch.equal(enc(x.clone().requires_grad_(True)), with_grad)
+
+
 def test_weights_peak_at_the_surface():
     z = torch.linspace(0.5, 1.5, 41)[None]
     tr = 0.1
@@ -75,6 +86,44 @@ def test_map_forward_matches_the_concatenated_decoders():
     c2 = torch.sigmoid(m.color_net(torch.cat([b, h[:, 1:]], -1)))
     assert torch.allclose(s, h[:, 0], atol=1e-5) and torch.allclose(c, c2, atol=1e-5)
     assert c.min() >= 0 and c.max() <= 1 and m(x, color=False)[1] is None
+
+
+def test_map_gradients_match_the_concatenated_decoders():
+    """The split first layers (accumulated in place, ReLU in place) give the parameters and the
+    points the gradients of the plain concatenated decoders."""
+    from dynslam_cli.map.model import NeuralMap
+
+    torch.manual_seed(0)
+    cfg = Config().map
+    cfg.n_levels, cfg.log2_hashmap_size = 4, 10
+    m = NeuralMap(cfg, [[0, 0, 0], [2, 2, 2]])
+    with torch.no_grad():
+        m.grid.embeddings.uniform_(-0.1, 0.1)
+    x = torch.rand(64, 3) * 2
+
+    def grads(loss_fn, xx):
+        m.zero_grad(set_to_none=True)
+        loss_fn(xx).backward()
+        return {k: p.grad.clone() for k, p in m.named_parameters()}
+
+    def split(xx):
+        s, c = m(xx)
+        return (s * s).sum() + (c * c).sum()
+
+    def concatenated(xx):
+        xn = m.normalize(xx)
+        b = m.blob(xn)
+        h = m.sdf_net(torch.cat([m.grid(xn), b], -1))
+        c = torch.sigmoid(m.color_net(torch.cat([b, h[:, 1:]], -1)))
+        return (h[:, 0] ** 2).sum() + (c * c).sum()
+
+    for needs_x in (False, True):
+        xa, xb = x.clone().requires_grad_(needs_x), x.clone().requires_grad_(needs_x)
+        ga, gb = grads(split, xa), grads(concatenated, xb)
+        for k in ga:
+            assert torch.allclose(ga[k], gb[k], atol=1e-6, rtol=1e-5), k
+        if needs_x:
+            assert torch.allclose(xa.grad, xb.grad, atol=1e-6, rtol=1e-5)
 
 
 def test_smoothness_from_the_ray_query_matches_the_separate_grid_call():

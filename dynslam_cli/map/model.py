@@ -88,17 +88,19 @@ class NeuralMap(torch.nn.Module):
         else:
             both = self.grid(torch.cat([x, self._grid_coords(grid_extra)]))
             feats, extra = both[:n], both[n:]
-        # first layers as split matmuls (no concatenated copies): W [grid | blob] = W_g grid + W_b blob
+        # first layers as split matmuls (no concatenated copies): W [grid | blob] = W_g grid + W_b blob,
+        # the second product accumulated in place (addmm_ runs the same GEMM as addmm without first
+        # copying its (N, hidden) input into a fresh tensor), ReLU in place too
         l0, l1 = self.sdf_net.layers
-        hid = torch.addmm(F.linear(blob, l0.weight[:, g:], l0.bias), feats, l0.weight[:, :g].t())
-        h = F.linear(F.relu(hid), l1.weight, l1.bias)
+        hid = F.linear(blob, l0.weight[:, g:], l0.bias).addmm_(feats, l0.weight[:, :g].t())
+        h = F.linear(F.relu(hid, inplace=True), l1.weight, l1.bias)
         sdf = h[:, 0]
         if not color:
             return sdf, None, extra
         c0, c1 = self.color_net.layers
         nb = self.blob.out_dim
-        hc = torch.addmm(F.linear(blob, c0.weight[:, :nb], c0.bias), h[:, 1:], c0.weight[:, nb:].t())
-        rgb = torch.sigmoid(F.linear(F.relu(hc), c1.weight, c1.bias))
+        hc = F.linear(blob, c0.weight[:, :nb], c0.bias).addmm_(h[:, 1:], c0.weight[:, nb:].t())
+        rgb = torch.sigmoid(F.linear(F.relu(hc, inplace=True), c1.weight, c1.bias))
         return sdf, rgb, extra
 
     def _grid_coords(self, pts: torch.Tensor) -> torch.Tensor:
