@@ -46,6 +46,8 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert meta["sequence"]["groundtruth"].endswith("groundtruth.txt") and meta["device"] == "cpu"
     # the numba layer the kernels really ran on, not the one asked for before any kernel ran
     assert meta["versions"]["numba_threading_layer"] in ("workqueue", "omp", "tbb")
+    for lib in ("opencv", "onnxruntime", "gtsam", "scipy", "cpu"):  # what else a trajectory depends on
+        assert meta["versions"][lib], lib
     traj = _traj(out / "traj_est.txt")
     assert traj.shape == (6, 8)
     stamps = [ln.split()[0] for ln in (clip / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]

@@ -14,6 +14,7 @@ record differs and names the difference.
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import platform
 import random
@@ -80,7 +81,34 @@ def versions() -> dict:
             out["numba_threading_layer"] = f"{numba.config.THREADING_LAYER} (requested)"
     except Exception:
         pass
+    # the other libraries a trajectory depends on (ORB, the encoder, bundle adjustment), and the CPU:
+    # float results, so trajectories, differ between builds and CPUs (README, "Reproducibility")
+    for key, dists in LIBRARIES.items():
+        for dist in dists:
+            try:
+                out[key] = importlib.metadata.version(dist)
+                break
+            except importlib.metadata.PackageNotFoundError:
+                continue
+    out["cpu"] = cpu_model()
     return out
+
+
+# run.json's versions: key -> the distributions that provide it (the first installed one is named)
+LIBRARIES = {"opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
+                        "opencv-contrib-python"),
+             "onnxruntime": ("onnxruntime", "onnxruntime-gpu"), "gtsam": ("gtsam",), "scipy": ("scipy",)}
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo; else platform.processor(); "unknown")."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
 
 
 def default_out_dir(cfg, dataset: str, name: str, variant: str) -> Path:
