@@ -69,7 +69,8 @@ def test_sdf_and_free_space_losses_vanish_for_the_true_sdf():
     assert float(sdf2) > 1e-4 and float(free2) > 1e-4
 
 
-def test_map_forward_matches_the_concatenated_decoders():
+def _small_map():
+    """A 4-level map over a 2 m cube with a random table, and 64 points in it."""
     from dynslam_cli.map.model import NeuralMap
 
     torch.manual_seed(0)
@@ -79,6 +80,11 @@ def test_map_forward_matches_the_concatenated_decoders():
     with torch.no_grad():
         m.grid.embeddings.uniform_(-0.1, 0.1)
     x = torch.rand(64, 3) * 2
+    return m, x
+
+
+def test_map_forward_matches_the_concatenated_decoders():
+    m, x = _small_map()
     s, c = m(x)
     xn = m.normalize(x)
     b = m.blob(xn)
@@ -91,15 +97,7 @@ def test_map_forward_matches_the_concatenated_decoders():
 def test_map_gradients_match_the_concatenated_decoders():
     """The split first layers (accumulated in place, ReLU in place) give the parameters and the
     points the gradients of the plain concatenated decoders."""
-    from dynslam_cli.map.model import NeuralMap
-
-    torch.manual_seed(0)
-    cfg = Config().map
-    cfg.n_levels, cfg.log2_hashmap_size = 4, 10
-    m = NeuralMap(cfg, [[0, 0, 0], [2, 2, 2]])
-    with torch.no_grad():
-        m.grid.embeddings.uniform_(-0.1, 0.1)
-    x = torch.rand(64, 3) * 2
+    m, x = _small_map()
 
     def grads(loss_fn, xx):
         m.zero_grad(set_to_none=True)

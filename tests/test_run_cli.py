@@ -53,8 +53,11 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     stamps = [ln.split()[0] for ln in (clip / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
     assert np.allclose(traj[:, 0], [float(s) for s in stamps])
     assert np.allclose(np.linalg.norm(traj[:, 4:], axis=1), 1, atol=1e-5)
+    # the backend's trajectory before its centres were smoothed, beside it (6 frames: too few to smooth)
+    assert np.array_equal(_traj(out / "traj_unsmoothed.txt"), traj)
     timing = json.loads((out / "timing.json").read_text())
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
+    assert set(timing["smoothing"]) == {"q_m2_s3", "noise_sd_m", "downweighted_frames"}
     # calls: frames each part ran on (tracking every frame; mapping on frame 0 and every keyframe_every-th)
     assert timing["calls"]["track"] == 6 and timing["calls"]["frame"] == 6 and 1 <= timing["calls"]["map"] < 6
     assert isinstance(timing["peak_rss_mb"], float) and 0 < rss_before <= timing["peak_rss_mb"] <= _proc_status_mb("VmHWM")

@@ -321,7 +321,15 @@ class _Run:
         if cfg.mapping.final_iters > 0:
             _say(self.progress, f"final bundle adjustment ({cfg.mapping.final_iters} iterations)...")
         fin = slam.finish()  # mapping.final_iters of bundle adjustment (none by default)
-        paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, slam.trajectory())
+        traj, smoothing = slam.trajectory(), None
+        if slam.backend is not None:  # the backend's centres, smoothed over the whole sequence; the raw ones beside
+            from dynslam_cli.backend.smoothing import smooth_poses
+
+            paths["traj_unsmoothed"] = write_tum(out / "traj_unsmoothed.txt", self.seq.stamps, traj)
+            traj, sm = smooth_poses(np.asarray(self.seq.stamps[:len(traj)], np.float64), traj)
+            smoothing = {"q_m2_s3": None if np.isnan(sm.q) else sm.q,  # None: too short or no noise, not smoothed
+                         "noise_sd_m": sm.noise_sd, "downweighted_frames": sm.downweighted}
+        paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, traj)
         if cfg.run.mesh:
             _say(self.progress, f"extracting the mesh ({cfg.run.mesh_resolution} m voxels)...")
             mesh = slam.extract_mesh(cfg.run.mesh_resolution)
@@ -342,6 +350,8 @@ class _Run:
             "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
             "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
         }
+        if smoothing is not None:
+            timing["smoothing"] = smoothing
         if loop.mm is not None:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
             timing["classifier_updates"] = len(loop.records)
