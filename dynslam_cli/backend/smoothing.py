@@ -1,6 +1,6 @@
 """Fixed-interval smoothing of a finished trajectory's camera centres (Rauch-Tung-Striebel).
 
-Every tracked camera centre carries white noise (on the Bonn crowd clip about 0.5 cm per axis; its
+Every tracked camera centre carries white noise (on the Bonn crowd clip 0.3-0.5 cm per axis; its
 second differences are 10x the ground truth's).  Online, :mod:`~dynslam_cli.backend.motion` can only
 fuse a frame with the frames before it.  Once the sequence is finished every frame can be
 estimated from all of them: this is the smoother of the same model, a camera moving under white-noise
@@ -76,9 +76,9 @@ def smooth_centres(stamps: np.ndarray, centres: np.ndarray) -> Smoothed:
 
 def _filter(t: np.ndarray, z: np.ndarray, qs: np.ndarray, r: np.ndarray, keep: bool = False):
     """Kalman filter of the constant-velocity model for every spectral density in ``qs`` at once
-    (the axes share the covariance).  Returns (predicted states, predicted covariances, filtered
-    states, filtered covariances) when ``keep`` (arrays over frames), and the negative log
-    likelihood of the innovations per q."""
+    (the axes share the covariance).  Returns (history, negative log likelihood of the innovations
+    per q); the history, kept only when ``keep``, holds per frame the predicted position, velocity
+    and covariance ``a, b, c`` ([[a, b], [b, c]]), then the same filtered."""
     nq = len(qs)
     x0 = np.repeat(z[0][None], nq, 0)  # position per q, axis
     x1 = np.zeros((nq, 3))  # velocity
