@@ -135,7 +135,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
     with tempfile.TemporaryDirectory() as tmp:
         ates = {}
         final = be.trajectory()
-        smoothed, _ = smooth_poses(np.asarray(seq.stamps[:len(final)], np.float64), final)  # as a run writes it
+        smoothed, _ = smooth_poses(seq.timestamps[:len(final)], final)  # as a run writes it
         for name, poses in (("online", np.stack(online)), ("final", final), ("smoothed", smoothed)):
             est = write_tum(Path(tmp) / f"{name}.txt", seq.stamps, poses)
             ates[name] = compute_ate(est, seq.groundtruth_file)

@@ -326,7 +326,7 @@ class _Run:
             from dynslam_cli.backend.smoothing import smooth_poses
 
             paths["traj_unsmoothed"] = write_tum(out / "traj_unsmoothed.txt", self.seq.stamps, traj)
-            traj, sm = smooth_poses(np.asarray(self.seq.stamps[:len(traj)], np.float64), traj)
+            traj, sm = smooth_poses(self.seq.timestamps[:len(traj)], traj)
             smoothing = {"q_m2_s3": None if np.isnan(sm.q) else sm.q,  # None: too short or no noise, not smoothed
                          "noise_sd_m": sm.noise_sd, "downweighted_frames": sm.downweighted}
         paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, traj)
