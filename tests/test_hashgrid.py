@@ -110,15 +110,19 @@ def test_linear_table_is_reproduced_on_a_dense_level(impl):
 
 
 @pytest.mark.parametrize("impl", ["torch", "numba"])
-def test_hashed_level_reads_the_hashed_vertex(impl):
+@pytest.mark.parametrize("log2, res, v", [(6, 8, (3, 5, 6)),
+                                          # products far beyond 32 bits: the numba kernels hash in uint32
+                                          (20, 512, (511, 300, 450)), (20, 512, (0, 511, 1))])
+def test_hashed_level_reads_the_hashed_vertex(impl, log2, res, v):
     # a level too big for the table: a point exactly on vertex (i, j, k) returns the entry at the hash
-    g = HashGrid(n_levels=1, n_features=1, log2_hashmap_size=6, base_resolution=8, finest_resolution=8, impl=impl)
+    T = 2 ** log2
+    g = HashGrid(n_levels=1, n_features=1, log2_hashmap_size=log2, base_resolution=res, finest_resolution=res,
+                 impl=impl)
     assert g.dense == [False]
     with torch.no_grad():
-        g.embeddings.copy_(torch.arange(64, dtype=torch.float32).view(1, 64, 1))
-    v = (3, 5, 6)
-    h = ((v[0] * PRIMES[0]) ^ (v[1] * PRIMES[1]) ^ (v[2] * PRIMES[2])) % 64
-    y = g(torch.tensor([[3 / 8, 5 / 8, 6 / 8]]))
+        g.embeddings.copy_(torch.arange(T, dtype=torch.float32).view(1, T, 1))
+    h = ((v[0] * PRIMES[0]) ^ (v[1] * PRIMES[1]) ^ (v[2] * PRIMES[2])) % T
+    y = g(torch.tensor([[v[0] / res, v[1] / res, v[2] / res]]))
     assert y.item() == pytest.approx(float(h), abs=1e-5)
 
 

@@ -34,6 +34,8 @@ choose_numba_layer()  # before any kernel here launches
 
 P1 = np.int64(2654435761)
 P2 = np.int64(805459861)
+U1 = np.uint32(P1)
+U2 = np.uint32(P2)
 
 
 @njit(inline="always")
@@ -46,33 +48,34 @@ def _clamp01(v):
 
 
 @njit(inline="always")
-def _cell_frac(v, rf, r):
-    """Cell and fraction along one axis: ``p = v*R`` (float32), ``c = min(floor(p), R-1)``."""
+def _cell_frac(v, rf, rm1):
+    """Cell and fraction along one axis: ``p = v*R`` (float32), ``c = min(floor(p), R-1)`` (``rm1`` = R-1, int32)."""
     p = v * rf
     # p >= 0, so truncation is floor; the max keeps a NaN input (undefined cast) inside the table
-    c = min(max(np.int64(p), np.int64(0)), r - 1)
+    c = min(max(np.int32(p), np.int32(0)), rm1)
     return c, p - np.float32(c)
 
 
 @njit(inline="always")
 def _corner_indices(c0, c1, c2, dense, stride, mask):
-    """Table indices of the 8 corners (corner k: offsets k & 1, k >> 1 & 1, k >> 2 & 1)."""
+    """Table indices of the 8 corners (corner k: offsets k & 1, k >> 1 & 1, k >> 2 & 1), unsigned:
+    the hash's bits under ``mask`` (< 2^32) are those of the 64-bit products, a dense index is below
+    the table size, and an unsigned index needs no negative-index wraparound (measured 1.3-1.8x
+    faster than the same code on int64 indices)."""
+    a0 = np.uint32(c0)
+    a1 = a0 + np.uint32(1)
     if dense:
-        a0 = c0
-        a1 = c0 + 1
-        b0 = c1 * stride
+        b0 = np.uint32(c1) * stride
         b1 = b0 + stride
         s2 = stride * stride
-        d0 = c2 * s2
+        d0 = np.uint32(c2) * s2
         d1 = d0 + s2
         return (a0 + b0 + d0, a1 + b0 + d0, a0 + b1 + d0, a1 + b1 + d0,
                 a0 + b0 + d1, a1 + b0 + d1, a0 + b1 + d1, a1 + b1 + d1)
-    a0 = c0
-    a1 = c0 + 1
-    b0 = c1 * P1
-    b1 = b0 + P1
-    d0 = c2 * P2
-    d1 = d0 + P2
+    b0 = np.uint32(c1) * U1
+    b1 = b0 + U1
+    d0 = np.uint32(c2) * U2
+    d1 = d0 + U2
     return ((a0 ^ b0 ^ d0) & mask, (a1 ^ b0 ^ d0) & mask, (a0 ^ b1 ^ d0) & mask, (a1 ^ b1 ^ d0) & mask,
             (a0 ^ b0 ^ d1) & mask, (a1 ^ b0 ^ d1) & mask, (a0 ^ b1 ^ d1) & mask, (a1 ^ b1 ^ d1) & mask)
 
@@ -80,10 +83,11 @@ def _corner_indices(c0, c1, c2, dense, stride, mask):
 @njit(inline="always")
 def _point_corners(x, n, rf, r, dn, mask):
     """Corner indices and fractions of point ``x[n]`` (clamped) at one level: ``(ids, f0, f1, f2)``."""
-    c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, r)
-    c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, r)
-    c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, r)
-    return _corner_indices(c0, c1, c2, dn, r + 1, mask), f0, f1, f2
+    rm1 = np.int32(r - 1)
+    c0, f0 = _cell_frac(_clamp01(x[n, 0]), rf, rm1)
+    c1, f1 = _cell_frac(_clamp01(x[n, 1]), rf, rm1)
+    c2, f2 = _cell_frac(_clamp01(x[n, 2]), rf, rm1)
+    return _corner_indices(c0, c1, c2, dn, np.uint32(r + 1), mask), f0, f1, f2
 
 
 @njit(inline="always")
@@ -114,7 +118,7 @@ def forward_points(x, table, res, dense, out):
     """out[n, l*F + f] = trilinear interpolation of level l; parallel over points."""
     n_pts = x.shape[0]
     n_lv, tsize, nf = table.shape
-    mask = np.int64(tsize - 1)
+    mask = np.uint32(tsize - 1)
     for n in prange(n_pts):
         for lv in range(n_lv):
             r = res[lv]
@@ -129,7 +133,7 @@ def forward_levels(x, table, res, dense, out):
     """Same as :func:`forward_points`, parallel over levels (each thread reads one level's table)."""
     n_pts = x.shape[0]
     n_lv, tsize, nf = table.shape
-    mask = np.int64(tsize - 1)
+    mask = np.uint32(tsize - 1)
     for lv in prange(n_lv):
         r = res[lv]
         rf = np.float32(r)
@@ -149,7 +153,7 @@ def forward_levels_jac(x, table, res, dense, out, jac):
     The tracking backward then needs no second pass over the table (:func:`contract_jac`)."""
     n_pts = x.shape[0]
     n_lv, tsize, nf = table.shape
-    mask = np.int64(tsize - 1)
+    mask = np.uint32(tsize - 1)
     one = np.float32(1.0)
     for lv in prange(n_lv):
         r = res[lv]
@@ -260,7 +264,7 @@ def backward_levels(x, table, grad_out, res, dense, do_table, do_x, grad_table, 
     """
     n_pts = x.shape[0]
     n_lv, tsize, nf = table.shape
-    mask = np.int64(tsize - 1)
+    mask = np.uint32(tsize - 1)
     zero = np.float32(0.0)
     for lv in prange(n_lv):
         if do_table:
@@ -305,7 +309,7 @@ def backward_x_points(x, table, grad_out, res, dense, grad_x):
     summation order as :func:`backward_levels` + :func:`reduce_x`; benchmark alternative."""
     n_pts = x.shape[0]
     n_lv, tsize, nf = table.shape
-    mask = np.int64(tsize - 1)
+    mask = np.uint32(tsize - 1)
     zero = np.float32(0.0)
     one = np.float32(1.0)
     for n in prange(n_pts):
@@ -321,10 +325,11 @@ def backward_x_points(x, table, grad_out, res, dense, grad_x):
         for lv in range(n_lv):
             r = res[lv]
             rf = np.float32(r)
-            c0, f0 = _cell_frac(x0, rf, r)
-            c1, f1 = _cell_frac(x1, rf, r)
-            c2, f2 = _cell_frac(x2, rf, r)
-            ids = _corner_indices(c0, c1, c2, dense[lv] != 0, r + 1, mask)
+            rm1 = np.int32(r - 1)
+            c0, f0 = _cell_frac(x0, rf, rm1)
+            c1, f1 = _cell_frac(x1, rf, rm1)
+            c2, f2 = _cell_frac(x2, rf, rm1)
+            ids = _corner_indices(c0, c1, c2, dense[lv] != 0, np.uint32(r + 1), mask)
             d0, d1, d2 = _corner_dx(table, lv, ids, grad_out, n, nf, f0, f1, f2)
             g0 += d0 * rf
             g1 += d1 * rf
