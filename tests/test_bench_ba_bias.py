@@ -1,16 +1,10 @@
 """The simulation of benchmarks/bench_ba_bias.py (the benchmark itself is run by hand)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_ba_bias.py"
-_spec = importlib.util.spec_from_file_location("bench_ba_bias", SCRIPT)
-B = importlib.util.module_from_spec(_spec)
-sys.modules["bench_ba_bias"] = B
-_spec.loader.exec_module(B)
+import benchmark_scripts  # tests/benchmark_scripts.py
+
+B = benchmark_scripts.load("bench_ba_bias")
 
 
 class TestSimulate:

@@ -1,18 +1,12 @@
 """The saved-mask reader of benchmarks/bench_backend.py (``--masks run:DIR``; the benchmark itself is run by hand)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_backend.py"
-_spec = importlib.util.spec_from_file_location("bench_backend", SCRIPT)
-B = importlib.util.module_from_spec(_spec)
-sys.modules["bench_backend"] = B
-_spec.loader.exec_module(B)
+import benchmark_scripts  # tests/benchmark_scripts.py
+
+B = benchmark_scripts.load("bench_backend")
 
 
 class TestRunMasker:

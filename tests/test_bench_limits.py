@@ -1,17 +1,12 @@
 """The cost models and the op counter of benchmarks/bench_limits.py (the benchmark itself is run by hand)."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_limits.py"
-_spec = importlib.util.spec_from_file_location("bench_limits", SCRIPT)
-B = importlib.util.module_from_spec(_spec)
-sys.modules["bench_limits"] = B  # dataclasses look their module up
-_spec.loader.exec_module(B)
+import benchmark_scripts  # tests/benchmark_scripts.py
+
+B = benchmark_scripts.load("bench_limits")
 
 
 def test_hashgrid_forward_model_counts_the_corner_gathers():
