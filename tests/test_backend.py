@@ -245,3 +245,13 @@ def test_state_without_a_motion_model_loads():
     assert not be2.motion.v.any() and np.array_equal(be2.last_pose, be.last_pose)
     assert not be2.track(4, *FRAMES[4]).lost
 
+
+
+def test_reprojection_evidence_of_the_last_tracked_frame():
+    be = Backend(INTR, CFG)
+    assert be.reprojection_evidence() is None
+    be.track(0, *FRAMES[0])
+    assert be.reprojection_evidence() is None  # the first frame is not tracked against a map
+    be.track(1, *FRAMES[1])
+    uv, ok = be.reprojection_evidence()
+    assert uv.shape == (len(ok), 2) and len(ok) >= 100 and ok.mean() > 0.9  # a still scene reprojects

@@ -150,3 +150,27 @@ class TestPoseCovariance:
 
         truth, X, kp, _ = _scene(10, seed=6)
         assert np.isinf(pose_covariance(CAM, truth, X[:2], kp.subset(np.arange(2)))).all()
+
+
+class TestReprojects:
+    def test_known_gate_per_octave(self):
+        from dynslam_cli.backend.tracking import CHI2_MONO, reprojects
+
+        truth, X, kp, _ = _scene(4, seed=4)
+        uv, _ = project(truth, X, CAM.K)
+        gate0 = np.sqrt(CHI2_MONO)  # px at octave 0; 1.2^3 times that at octave 3
+        off = np.array([0.9 * gate0, 1.1 * gate0, 0.9 * gate0 * 1.2 ** 3, 1.1 * gate0 * 1.2 ** 3])
+        k = Keypoints(uv + np.stack([off, np.zeros(4)], 1), kp.des, np.zeros(4), np.array([0, 0, 3, 3]),
+                      np.zeros(4))
+        assert reprojects(CAM, truth, X, k).tolist() == [True, False, True, False]
+
+    def test_track_frame_reports_every_match_and_the_moved_ones_fail(self):
+        truth, X, kp, rng = _scene(250, seed=5)
+        ids = np.arange(len(X))
+        moved = np.arange(200, 250)  # a thing that started to move: its keypoints are 6 px off
+        kp.uv[moved, 0] += 6.0
+        one = lambda rows, dist: np.ones(len(rows))  # noqa: E731
+        tr = track_frame(CAM, truth, kp, ids, X, kp.des, one, 15.0, 2.8, 20, seed=0)
+        assert not tr.lost and len(tr.matched) == len(tr.reprojects) >= 240
+        fails = set(tr.matched[~tr.reprojects].tolist())
+        assert fails >= set(moved.tolist()) and len(fails - set(moved.tolist())) <= 12

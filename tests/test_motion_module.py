@@ -259,3 +259,22 @@ def test_module_with_effnet_encoder(tmp_path, monkeypatch):
     inst1 = mod.observe(f1, np.eye(4))
     assert inst1.dynamic[_instance_of(inst1, f1.gt == 1) - 1]
     assert (tmp_path / "cache" / "effnet-lite0-160-v1.onnx").is_file()  # motion.encoder_input_size 0: 160
+
+
+def test_module_learns_what_the_backend_saw_move():
+    # the map agrees with the frame (the person was mapped where it stands: nothing 0.3 m off), but
+    # the backend's keypoints on it stopped reprojecting: the vote labels it moving, g learns it
+    mod = _module()
+    pose = np.eye(4)
+    f0 = _frame(0, person_x=-0.3)
+    inst = mod.observe(f0, pose)
+    pid = _instance_of(inst, f0.gt == 1)
+    assert mod.check_and_update(f0, inst, pose, f0.depth, None) is None  # consistent: nothing to learn
+    vote = np.zeros(inst.count, bool)
+    vote[pid - 1] = True
+    rec = mod.check_and_update(f0, inst, pose, f0.depth, None, None, None, vote)
+    assert rec is not None and rec.labels[rec.contradicted[0]] == 1 and mod.updates == 1
+    assert inst.dynamic[pid - 1] and inst.dynamic.sum() == 1
+    # stayed put overrides it (an object set down at its new place is static there)
+    rec = mod.check_and_update(f0, inst, pose, f0.depth, None, None, vote, vote)
+    assert rec is not None and not any(rec.labels)

@@ -23,7 +23,7 @@ import numpy as np
 
 from dynslam_cli.backend.bundle import local_bundle_adjustment
 from dynslam_cli.backend.config import BackendConfig
-from dynslam_cli.backend.features import Detector, Keypoints, backproject, pixel_index
+from dynslam_cli.backend.features import Detector, Keypoints, backproject, on_depth_discontinuity, pixel_index
 from dynslam_cli.backend.keyframes import need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.motion import MotionFilter
@@ -78,6 +78,7 @@ class Backend:
         self._ref_buf, self._rel_buf = self.frame_ref, self.frame_rel
         self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
         self._last: Optional[tuple] = None  # (index, guess, keypoints, local-map ids) of the last tracked frame
+        self._evidence: Optional[tuple] = None  # its matched keypoints' pixels and whether each reprojects
 
     # -- public ------------------------------------------------------------------------------------
     def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
@@ -90,6 +91,7 @@ class Backend:
         t0 = time.perf_counter()
         self._pending = None
         self._last = None
+        self._evidence = None
         self.lm.compact()  # no landmark id is held outside the map now
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
@@ -127,6 +129,10 @@ class Backend:
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
+        # the reprojection evidence, without keypoints on occluding contours (they slide as the camera moves)
+        mv, mu = pixel_index(kp.uv[tr.matched], *np.shape(depth))
+        surface = ~on_depth_discontinuity(depth, mv, mu, kp.octave[tr.matched])
+        self._evidence = (kp.uv[tr.matched][surface], tr.reprojects[surface])
         pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
@@ -148,6 +154,13 @@ class Backend:
                 inserted, ba_ms, pose = self.commit()
                 out.pose_c2w, out.ba_ms = pose, ba_ms
         return out
+
+    def reprojection_evidence(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The last tracked frame's matched keypoints (N×2 pixels; those on occluding contours left
+        out: :func:`~dynslam_cli.backend.features.on_depth_discontinuity`) and whether each
+        reprojects at its tracked pose (:func:`~dynslam_cli.backend.tracking.reprojects`); None
+        where the frame was not tracked against the local map (the first frame, a lost frame)."""
+        return self._evidence
 
     def retrack(self, static_mask: np.ndarray) -> Optional[np.ndarray]:
         """Track the last frame again from the same prediction on the keypoints that ``static_mask``

@@ -12,6 +12,11 @@ from dynslam_cli.geometry import camera
 
 SCALE = 1.2  # ORB pyramid scale factor
 LEVELS = 8
+# A keypoint lies on a depth discontinuity when at least OCCLUSION_SHARE of the valid depths within the radius of its
+# FAST circle (3 px at its pyramid level) lie more than OCCLUSION_JUMP (relative) in front of or behind its own depth.
+FAST_RADIUS = 3
+OCCLUSION_JUMP = 0.05
+OCCLUSION_SHARE = 0.1
 
 
 @dataclass
@@ -93,6 +98,33 @@ class Detector:
         d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
         sig = depth_sigma(depth, v[keep], u[keep], d, octave[keep], self.depth_noise)
         return Keypoints(uv[keep], np.asarray(des, np.uint8)[keep], d, octave[keep], sig)
+
+
+def on_depth_discontinuity(depth: np.ndarray, v: np.ndarray, u: np.ndarray, octave: np.ndarray) -> np.ndarray:
+    """Which keypoints (at pixels ``v``, ``u``, pyramid level ``octave``) see two surfaces: at least
+    :data:`OCCLUSION_SHARE` of the valid depths within the radius of the keypoint's FAST circle
+    (:data:`FAST_RADIUS` px at its level, a square window) differ from the keypoint's own depth by
+    more than :data:`OCCLUSION_JUMP` of it.  Such a corner is made by an occluding contour, not by
+    a point on one surface: it slides along the contour as the camera moves, so it fails to
+    reproject without anything moving.  Keypoints without depth are not judged (False)."""
+    D = np.asarray(depth, np.float32)
+    h, w = D.shape
+    n = len(v)
+    if n == 0:
+        return np.zeros(0, bool)
+    d = D[v, u]
+    has = np.isfinite(d) & (d > 0)
+    rad = np.round(FAST_RADIUS * SCALE ** np.asarray(octave, np.float64)).astype(np.int64)
+    R = int(rad.max())
+    off = np.arange(-R, R + 1)
+    dv, du = np.meshgrid(off, off, indexing="ij")
+    dv, du = dv.ravel(), du.ravel()
+    inside = np.maximum(np.abs(dv), np.abs(du))[None, :] <= rad[:, None]  # (n, M)
+    nb = D[np.clip(v[:, None] + dv[None, :], 0, h - 1), np.clip(u[:, None] + du[None, :], 0, w - 1)]
+    valid = inside & np.isfinite(nb) & (nb > 0)
+    other = valid & (np.abs(nb - d[:, None]) > OCCLUSION_JUMP * d[:, None])
+    share = other.sum(1) / np.maximum(valid.sum(1), 1)
+    return has & (share >= OCCLUSION_SHARE)
 
 
 def depth_sigma(depth: np.ndarray, v: np.ndarray, u: np.ndarray, d: np.ndarray, octave: np.ndarray,

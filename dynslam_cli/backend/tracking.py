@@ -10,7 +10,7 @@ than solving it; vectorised it takes about a millisecond per round."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -221,7 +221,9 @@ def pnp_relocalise(cam: Camera, X: np.ndarray, des: np.ndarray, kp: Keypoints, s
 class FrameTrack:
     """What tracking one frame found: ``pose`` (camera-to-world), the matched landmark ids and
     keypoint rows that are inliers, the landmark ids that projected into the frame, ``lost``,
-    ``reason`` (motion | wide | relocalised | lost: ...)."""
+    ``reason`` (motion | wide | relocalised | lost: ...); ``matched`` (keypoint rows of every match
+    of the search around the motion model's guess, inliers or not) and ``reprojects`` (whether each reprojects at ``pose``
+    within the 95 % gate of its pixel noise: :func:`reprojects`)."""
 
     pose: np.ndarray
     lm: np.ndarray
@@ -229,6 +231,17 @@ class FrameTrack:
     visible: np.ndarray
     lost: bool
     reason: str
+    matched: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    reprojects: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+def reprojects(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints) -> np.ndarray:
+    """Whether each world point ``X[i]`` projects at ``T_c2w`` onto its keypoint ``kp[i]`` within the
+    95 % chi-square gate of the keypoint's pixel noise (SCALE^octave px; depth left out: a thing
+    that moves shows in the image, a noisy depth does not)."""
+    uv, z = project(T_c2w, X, cam.K)
+    e2 = ((uv - kp.uv) ** 2).sum(1) * SCALE ** (-2.0 * np.asarray(kp.octave, np.float64))
+    return (z > 1e-6) & (e2 <= CHI2_MONO)
 
 
 def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, X: np.ndarray, des: np.ndarray,
@@ -238,9 +251,15 @@ def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, 
     ``dist``) from the predicted pose ``guess``."""
     r = search_px * cam.width / 640.0
 
-    def attempt(T, radius):
+    # the landmark and keypoint rows matched by the search around the motion model's guess (the wider
+    # one where it was needed): a thing that started to move is matched there, and fails to reproject
+    matches = [np.zeros(0, np.int64), np.zeros(0, np.int64)]
+
+    def attempt(T, radius, keep=True):
         dist = np.linalg.norm(X - T[:3, 3], axis=1)
         a, b, vis = search_by_projection(cam, T, X, des, scale_fn(np.arange(len(X)), dist), kp, radius)
+        if keep:
+            matches[:] = [a, b]
         if len(a) < 3:
             return T, a[:0], b[:0], vis
         T2, inl = optimize_pose(cam, T, X[a], kp.subset(b), huber)
@@ -257,8 +276,10 @@ def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, 
             return FrameTrack(guess.copy(), a[:0], b[:0], np.zeros(0, np.int64), True,
                               f"lost: {len(a)} static matches (< {min_matches}) and no PnP relocalisation")
         T, reason = Tp, "relocalised"
-    T, a, b, vis = attempt(T, max(r / 4, 2.0))  # the local map from the tracked pose: more, closer matches
+    # the local map from the tracked pose: more, closer matches (a relocalised frame's evidence comes from here)
+    T, a, b, vis = attempt(T, max(r / 4, 2.0), keep=reason == "relocalised")
     if len(a) < min_matches:
         return FrameTrack(guess.copy(), a[:0], b[:0], np.zeros(0, np.int64), True,
                           f"lost: {len(a)} static inliers (< {min_matches}) after {reason} tracking")
-    return FrameTrack(T, ids[a], b, ids[vis], False, reason)
+    a_all, b_all = matches
+    return FrameTrack(T, ids[a], b, ids[vis], False, reason, b_all, reprojects(cam, T, X[a_all], kp.subset(b_all)))

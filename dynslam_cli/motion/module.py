@@ -161,7 +161,8 @@ class MotionModule:
     def check_and_update(self, frame, inst: FrameInstances, pose_c2w: np.ndarray, rendered_depth: np.ndarray,
                          rendered_rgb: Optional[np.ndarray],
                          forward_valid: Optional[np.ndarray] = None,
-                         stationary: Optional[np.ndarray] = None) -> Optional[UpdateRecord]:
+                         stationary: Optional[np.ndarray] = None,
+                         reprojection_moving: Optional[np.ndarray] = None) -> Optional[UpdateRecord]:
         m = self.m
         t0 = time.perf_counter()
         H, W = frame.depth.shape[:2]
@@ -178,6 +179,9 @@ class MotionModule:
         inst.features = feats
         judged = res.judged if res.judged is not None else np.ones(inst.count, bool)
         labels = res.observed_moving
+        if reprojection_moving is not None and len(reprojection_moving) == inst.count:  # the backend saw it move
+            judged = judged | reprojection_moving
+            labels = labels | reprojection_moving
         if stationary is not None and len(stationary) == inst.count:  # stayed put: static at its place
             judged = judged | stationary
             labels = labels & ~stationary

@@ -1,12 +1,14 @@
 """The per-frame loop of both modes: the paper's 'learn to memorize and to forget' loop.
 
 Per frame: segment, encode and classify the instances (motion module) → track on the static
-pixels → render the map at the tracked pose and run the bidirectional inconsistency check → on a
+pixels → render the map at the tracked pose and run the bidirectional inconsistency check, beside
+the backend's vote on the instances whose keypoints stopped reprojecting (``reprojection``) → on a
 contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
 map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
 the keyframe's rays.  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
-classify, check and update), ``checkable`` (what the map can judge), ``stayed`` (stayed put) and
-``forget`` (keyframe rays masked or gone); this loop only drives them.  Static mode is the same
+classify, check and update), ``checkable`` (what the map can judge), ``reprojection`` (the
+backend's vote), ``stayed`` (stayed put) and ``forget`` (keyframe rays masked or gone); this loop
+only drives them.  Static mode is the same
 loop without a motion module: every pixel is static, nothing is checked or forgotten.
 """
 
@@ -22,6 +24,7 @@ import numpy as np
 
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
 from dynslam_cli.motion.forget import carve, forget_departed, near_ids, refresh_keyframes
+from dynslam_cli.motion.reprojection import moving_by_reprojection
 from dynslam_cli.motion.stayed import stayed_put
 from dynslam_cli.slam.frontend import first_pose
 from dynslam_cli.utils.io import atomic_path, write_text_atomic
@@ -92,7 +95,9 @@ class FrameLoop:
             still = stayed_put(frame.depth, inst.ids, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
                                self.slam.n_frames - 1, self.still_frames, self.still_tolerance,
                                self.mm.m.depth_threshold, bool(self.mm.m.centre_feature))
-            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still)
+            evidence = self.slam.reprojection_evidence()
+            moved = None if evidence is None else moving_by_reprojection(inst.ids, *evidence, inst.count)
+            record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still, moved)
             forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w, self.slam.keyframes,
                             self.slam.intr, self.mm.m.depth_threshold, self.forget_radius)
             if record is not None and RETRACK_FRACTION > 0:

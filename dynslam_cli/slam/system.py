@@ -64,6 +64,12 @@ class SLAM(SlamState):
             self.mapper.build_model(b)
         return self.frontend.track(frame, cur, t0)
 
+    def reprojection_evidence(self):
+        """The backend's matched keypoints of the last tracked frame and whether each reprojects at
+        its pose (:meth:`~dynslam_cli.backend.backend.Backend.reprojection_evidence`); None without
+        the backend or where it did not track the frame against its local map."""
+        return None if self.backend is None else self.backend.reprojection_evidence()
+
     def retrack(self, frame, mask: Optional[np.ndarray] = None) -> TrackResult:
         """Track the last tracked frame again (e.g. with a corrected static mask), replacing its
         pose; must come between track() and map() of that frame."""
