@@ -78,7 +78,7 @@ class Backend:
         self._ref_buf, self._rel_buf = self.frame_ref, self.frame_rel
         self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
         self._last: Optional[tuple] = None  # (index, guess, keypoints, local-map ids) of the last tracked frame
-        self._evidence: Optional[tuple] = None  # its matched keypoints' pixels and whether each reprojects
+        self._evidence: Optional[tuple] = None  # its matched keypoints, whether each reprojects, its depth
 
     # -- public ------------------------------------------------------------------------------------
     def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
@@ -129,10 +129,7 @@ class Backend:
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
-        # the reprojection evidence, without keypoints on occluding contours (they slide as the camera moves)
-        mv, mu = pixel_index(kp.uv[tr.matched], *np.shape(depth))
-        surface = ~on_depth_discontinuity(depth, mv, mu, kp.octave[tr.matched])
-        self._evidence = (kp.uv[tr.matched][surface], tr.reprojects[surface])
+        self._evidence = (kp.subset(tr.matched), tr.reprojects, depth)  # judged on demand: reprojection_evidence
         pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
@@ -159,8 +156,14 @@ class Backend:
         """The last tracked frame's matched keypoints (N×2 pixels; those on occluding contours left
         out: :func:`~dynslam_cli.backend.features.on_depth_discontinuity`) and whether each
         reprojects at its tracked pose (:func:`~dynslam_cli.backend.tracking.reprojects`); None
-        where the frame was not tracked against the local map (the first frame, a lost frame)."""
-        return self._evidence
+        where the frame was not tracked against the local map (the first frame, a lost frame).
+        Computed when asked (static mode never asks)."""
+        if self._evidence is None:
+            return None
+        matched, ok, depth = self._evidence
+        v, u = pixel_index(matched.uv, *np.shape(depth))
+        surface = ~on_depth_discontinuity(depth, v, u, matched.octave)  # contour corners slide as the camera moves
+        return matched.uv[surface], ok[surface]
 
     def retrack(self, static_mask: np.ndarray) -> Optional[np.ndarray]:
         """Track the last frame again from the same prediction on the keypoints that ``static_mask``

@@ -222,8 +222,8 @@ class FrameTrack:
     """What tracking one frame found: ``pose`` (camera-to-world), the matched landmark ids and
     keypoint rows that are inliers, the landmark ids that projected into the frame, ``lost``,
     ``reason`` (motion | wide | relocalised | lost: ...); ``matched`` (keypoint rows of every match
-    of the search around the motion model's guess, inliers or not) and ``reprojects`` (whether each reprojects at ``pose``
-    within the 95 % gate of its pixel noise: :func:`reprojects`)."""
+    of the search around the motion model's guess, inliers or not) and ``reprojects`` (whether each
+    reprojects at ``pose`` within the 95 % gate of its pixel noise: :func:`reprojects`)."""
 
     pose: np.ndarray
     lm: np.ndarray

@@ -60,8 +60,8 @@ def _cell_frac(v, rf, rm1):
 def _corner_indices(c0, c1, c2, dense, stride, mask):
     """Table indices of the 8 corners (corner k: offsets k & 1, k >> 1 & 1, k >> 2 & 1), unsigned:
     the hash's bits under ``mask`` (< 2^32) are those of the 64-bit products, a dense index is below
-    the table size, and an unsigned index needs no negative-index wraparound (measured 1.3-1.8x
-    faster than the same code on int64 indices)."""
+    the table size, and an unsigned index needs no negative-index wraparound (the forward took
+    0.79-0.82x, the table backward 0.87-0.90x the time of the same code on int64 indices)."""
     a0 = np.uint32(c0)
     a1 = a0 + np.uint32(1)
     if dense:

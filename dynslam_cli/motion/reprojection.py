@@ -41,7 +41,6 @@ def moving_by_reprojection(ids: np.ndarray, uv: np.ndarray, ok: np.ndarray, coun
     n = np.bincount(inst, minlength=count + 1)[1:count + 1]
     bad = np.bincount(inst, weights=(~ok).astype(np.float64), minlength=count + 1)[1:count + 1].astype(np.int64)
     has = n > 0
-    p = np.ones(int(count))
-    p[has] = binom.sf(bad[has] - 1, n[has], rate)  # P(X >= bad)
-    out[has] = (p[has] < ALPHA) & (bad[has] > rate * n[has])
+    p = binom.sf(bad[has] - 1, n[has], rate)  # P(X >= bad)
+    out[has] = (p < ALPHA) & (bad[has] > rate * n[has])
     return out
