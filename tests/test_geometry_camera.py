@@ -1,6 +1,6 @@
 import numpy as np
 
-from dynslam_cli.geometry.camera import backproject, pixel_dirs, project, transform
+from dynslam_cli.geometry.camera import backproject, pixel_dirs, pixel_index, project, transform
 from dynslam_cli.geometry.lie import inv_np, se3_exp_np
 
 
@@ -20,3 +20,9 @@ def test_backproject_project_round_trip():
 def test_pixel_dirs_have_unit_z():
     d = pixel_dirs(np.array([0, 10]), np.array([5, 7]), 10.0, 10.0, 5.0, 5.0)
     assert np.allclose(d[:, 2], 1) and np.allclose(d[0], [-0.5, 0, 1])
+
+
+def test_pixel_index_nearest_pixel_clipped_into_the_image():
+    uv = np.array([[3.4, 1.6], [-2.0, 0.2], [40.0, 9.9]])
+    v, u = pixel_index(uv, 10, 32)
+    assert v.tolist() == [2, 0, 9] and u.tolist() == [3, 0, 31] and v.dtype == u.dtype == np.int64

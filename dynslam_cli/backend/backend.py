@@ -23,11 +23,12 @@ import numpy as np
 
 from dynslam_cli.backend.bundle import local_bundle_adjustment
 from dynslam_cli.backend.config import BackendConfig
-from dynslam_cli.backend.features import Detector, Keypoints, backproject, on_depth_discontinuity, pixel_index
+from dynslam_cli.backend.features import Detector, Keypoints, backproject, on_depth_discontinuity
 from dynslam_cli.backend.keyframes import need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.motion import MotionFilter
 from dynslam_cli.backend.tracking import Camera, pose_covariance, track_frame
+from dynslam_cli.geometry.camera import pixel_index
 
 
 @dataclass

@@ -9,6 +9,7 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.geometry import camera
+from dynslam_cli.geometry.camera import pixel_index
 
 SCALE = 1.2  # ORB pyramid scale factor
 LEVELS = 8
@@ -46,12 +47,6 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance of two N×32 uint8 descriptor arrays."""
     x = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
     return np.bitwise_count(x).sum(-1, dtype=np.int64)
-
-
-def pixel_index(uv: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
-    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
-    return v, u
 
 
 class Detector:

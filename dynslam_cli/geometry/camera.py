@@ -8,6 +8,14 @@ import numpy as np
 import torch
 
 
+def pixel_index(uv: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column (int64) of the pixel nearest to each point ``uv`` (N×2, u = column), clipped
+    into an h×w image."""
+    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return v, u
+
+
 def pixel_dirs(u, v, fx: float, fy: float, cx: float, cy: float):
     """Camera-frame directions (N, 3) with z = 1 for pixel coordinates u (column), v (row).
 

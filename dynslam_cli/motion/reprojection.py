@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dynslam_cli.geometry.camera import pixel_index
+
 # One-sided significance of "this instance's matches fail more often than the frame's": at most about one false vote
 # in a thousand instance tests where nothing moved.
 ALPHA = 1e-3
@@ -33,9 +35,7 @@ def moving_by_reprojection(ids: np.ndarray, uv: np.ndarray, ok: np.ndarray, coun
     ok = np.asarray(ok, bool)
     if count <= 0 or len(ok) == 0:
         return out
-    h, w = ids.shape
-    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
-    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    v, u = pixel_index(uv, *np.shape(ids))
     inst = np.asarray(ids)[v, u].astype(np.int64)
     rate = max(float((~ok).mean()), GATE_FALSE_ALARM)
     n = np.bincount(inst, minlength=count + 1)[1:count + 1]
