@@ -115,8 +115,10 @@ def test_state_dict_round_trip_continues_identically():
     first = Backend(INTR, CFG)
     _run(first, FRAMES[:5])
     state = {k: np.array(v) for k, v in first.state_dict().items()}
+    kf_state = {k: np.array(v) for k, v in first.keyframes.state_dict().items()}
     assert all(isinstance(v, np.ndarray) for v in state.values())
     resumed = Backend(INTR, CFG)
+    resumed.keyframes.load_state_dict(kf_state)  # the keyframe store's part
     resumed.load_state_dict(state)
     rest = _run(resumed, FRAMES[5:], start=5)
     for a, b in zip(ref[5:], rest, strict=False):
@@ -136,7 +138,7 @@ def test_config_rules(bad):
 
 def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
     """With defer, the keyframe waits for commit(): no landmark on pixels the final mask drops, and
-    each landmark carries the instance id under it, so forget() leaves out an instance's landmarks
+    each landmark carries the instance id under it, so keyframes.forget() leaves out an instance's landmarks
     while it is called dynamic and takes them back when it is called static again."""
     be = Backend(INTR, CFG)
     rgb, d = FRAMES[0]
@@ -154,12 +156,12 @@ def test_deferred_keyframe_uses_the_final_mask_and_tags_instances():
     assert right.any() and (be.lm.origin[~right] == 0).all()
     assert be.commit(static, ids) == (False, 0.0, None)  # nothing pending any more
     everything = be.lm.seen_by([0])
-    assert be.forget(5, [7]) == 0  # frame 5 is no keyframe
-    assert be.forget(0, [7]) == int(right.sum())
+    assert be.keyframes.forget(5, [7]) == 0  # frame 5 is no keyframe
+    assert be.keyframes.forget(0, [7]) == int(right.sum())
     assert set(be.lm.seen_by([0])) == set(everything) - set(np.flatnonzero(right))
     outs = [be.track(i, *FRAMES[i], None) for i in range(1, 4)]  # the rest still tracks
     assert not any(o.lost for o in outs)
-    assert be.forget(0, []) == 0  # called static again: back in the local map
+    assert be.keyframes.forget(0, []) == 0  # called static again: back in the local map
     assert set(np.flatnonzero(right)) <= set(be.lm.seen_by([0]))
 
 
@@ -241,6 +243,7 @@ def test_state_without_a_motion_model_loads():
     _run(be, FRAMES[:4])
     old = {k: v for k, v in be.state_dict().items() if not k.startswith("motion.")}
     be2 = Backend(INTR, CFG)
+    be2.keyframes.load_state_dict(be.keyframes.state_dict())
     be2.load_state_dict(old)
     assert not be2.motion.v.any() and np.array_equal(be2.last_pose, be.last_pose)
     assert not be2.track(4, *FRAMES[4]).lost

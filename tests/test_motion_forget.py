@@ -32,13 +32,13 @@ def test_refresh_keyframes_masks_rays_of_dynamic_instances():
     store.add(kf(10, [1, 1], [True, True], near=np.array([[2, 1], [1, 0]])))
     store.add(kf(15, [1, 0], [True, True], gone=np.array([False, True])))  # no instances registered: untouched
     dropped = []
-    store.landmarks = SimpleNamespace(forget=lambda fid, ids: dropped.append((fid, ids.tolist())))
+    store.landmark_keyframes = SimpleNamespace(forget=lambda fid, ids: dropped.append((fid, ids.tolist())))
     dyn = {0: [2], 5: [], 10: [2], 20: [1]}  # frame 20: a backend keyframe without neural-map rays
     for fid in dyn:
         store.register_instances(fid, np.full((3, 1), float(fid)), np.zeros(3, bool))
     motion = SimpleNamespace(dynamic_ids=lambda feats, prior: np.array(dyn[int(feats[0, 0])], np.int32))
     assert refresh_keyframes(store, motion) == 3
-    # the backend drops the landmarks on dynamic instances, in registration order
+    # the backend keyframes leave out the landmarks on dynamic instances, in registration order
     assert dropped == [(0, [2]), (5, []), (10, [2]), (20, [1])]
     assert store[0].usable.tolist() == [True, True, False, False, True]
     assert store[1].usable.tolist() == [True, True, True]  # reclassified static: remembered again

@@ -64,3 +64,23 @@ class TestKeyframeStore:
         assert [k.frame_id for k in back] == [0, 5] and back[1].usable.tolist() == [True, False]
         rec = back.instances()[5]
         assert rec["feats"].dtype == np.float32 and rec["prior"].tolist() == [False, True]
+
+    def test_forget_reaches_the_backend_keyframes_landmarks_and_they_round_trip(self):
+        from dynslam_cli.backend.features import Keypoints
+        from dynslam_cli.slam.keyframes import KeyframeStore
+
+        store = self._store()
+        lkf = store.landmark_keyframes
+        k = lkf.add(5, np.eye(4))
+        n = 3
+        kp = Keypoints(uv=np.zeros((n, 2)), des=np.zeros((n, 32), np.uint8), depth=np.ones(n),
+                       octave=np.zeros(n, np.int64), dsig=np.full(n, 0.01))
+        lkf.landmarks.create(k, kp, np.ones((n, 3)), np.zeros(3), np.array([1, 2, 1]))
+        store.register_instances(5, np.ones((2, 4)), np.array([False, False]))
+        store.forget({5: np.array([1])})
+        assert lkf.landmarks.moving.tolist() == [True, False, True]  # the landmarks made on instance 1
+        back = KeyframeStore()
+        held = back.landmark_keyframes  # a backend made before loading keeps working on the loaded state
+        back.load_state_dict(store.state_dict())
+        assert back.landmark_keyframes is held and held.frames.tolist() == [5]
+        assert held.landmarks.moving.tolist() == [True, False, True]

@@ -63,5 +63,6 @@ def test_the_backend_weighs_depth_by_the_sequences_noise():
     cfg = tiny_config(**{"tracking.backend": True})
     s = SlamState(cfg, INTR, torch.device("cpu"), depth_noise=0.002)
     be = s.make_backend()
-    assert be.detector.depth_noise == 0.002 and s.keyframes.landmarks is be  # forgetting reaches its landmarks
+    assert be.detector.depth_noise == 0.002
+    assert be.keyframes is s.keyframes.landmark_keyframes  # forgetting reaches its landmarks through the store
     assert SlamState(cfg, INTR, torch.device("cpu")).make_backend().detector.depth_noise == DataConfig.DEPTH_NOISE

@@ -5,13 +5,15 @@ match the local map (the landmarks of the reference keyframe's covisible keyfram
 pose-only optimisation (wider search, then PnP relocalisation, else ``lost``) → the pose fused with
 the motion model's prediction → keyframe decision by overlap → on a keyframe:
 its observations, new landmarks from its unmatched keypoints with depth, culling, and local bundle
-adjustment of the newest keyframes' window (gtsam).
+adjustment of the newest keyframes' window (gtsam).  The keyframes, their poses and the landmarks
+are a :class:`~dynslam_cli.backend.keyframes.LandmarkKeyframes` (``keyframes``): the run's keyframe
+store hands its own to the backend, so that forgetting reaches the landmarks through the store.
 
 With ``track(..., defer=True)`` the keyframe is inserted by :meth:`Backend.commit`, which takes the
 frame's final static mask (the motion check after tracking may have found more movers) and instance
 ids: no landmark is made on a pixel known to move by then, and each landmark remembers the instance
-it was made on, so :meth:`Backend.forget` leaves out the landmarks of an instance found to move later
-(and takes them back if it is called static again)."""
+it was made on, so :meth:`LandmarkKeyframes.forget` leaves out the landmarks of an instance found to
+move later (and takes them back if it is called static again)."""
 
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ import numpy as np
 from dynslam_cli.backend.bundle import local_bundle_adjustment
 from dynslam_cli.backend.config import BackendConfig
 from dynslam_cli.backend.features import Detector, Keypoints, backproject, on_depth_discontinuity
-from dynslam_cli.backend.keyframes import need_keyframe
+from dynslam_cli.backend.keyframes import LandmarkKeyframes, need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.motion import MotionFilter
 from dynslam_cli.backend.tracking import Camera, pose_covariance, track_frame
@@ -51,10 +53,11 @@ class TrackOutcome:
 class Backend:
     """``intrinsics``: (fx, fy, cx, cy, W, H) of the undistorted images; ``cfg``: BackendConfig;
     ``first_pose``: the first frame's camera-to-world pose (identity when None); ``depth_noise``: the
-    sensor's depth noise per metre² (``Sequence.depth_noise``; ``DataConfig.DEPTH_NOISE`` when None)."""
+    sensor's depth noise per metre² (``Sequence.depth_noise``; ``DataConfig.DEPTH_NOISE`` when None);
+    ``keyframes``: where the keyframes and landmarks go (the keyframe store's; a new one when None)."""
 
     def __init__(self, intrinsics, cfg: Optional[BackendConfig] = None, first_pose: Optional[np.ndarray] = None,
-                 depth_noise: Optional[float] = None):
+                 depth_noise: Optional[float] = None, keyframes: Optional[LandmarkKeyframes] = None):
         fx, fy, cx, cy, w, h = intrinsics
         self.cfg = cfg or BackendConfig()
         self.cam = Camera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), float(fx) * self.cfg.BASELINE)
@@ -64,9 +67,7 @@ class Backend:
             depth_noise = DataConfig.DEPTH_NOISE
         self.detector = Detector(self.cfg.features, int(w), int(h), depth_noise=float(depth_noise))
         self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
-        self.lm = LandmarkMap()
-        self.kf_frame = np.zeros(0, np.int64)
-        self.kf_pose = np.zeros((0, 4, 4))
+        self.keyframes = LandmarkKeyframes() if keyframes is None else keyframes
         self.ref_kf = -1
         self.last_pose: Optional[np.ndarray] = None
         self.prev_pose: Optional[np.ndarray] = None
@@ -80,6 +81,21 @@ class Backend:
         self._pending: Optional[tuple] = None  # (index, pose, keypoints, landmark ids, keypoint rows) of a due keyframe
         self._last: Optional[tuple] = None  # (index, guess, keypoints, local-map ids) of the last tracked frame
         self._evidence: Optional[tuple] = None  # its matched keypoints, whether each reprojects, its depth
+
+    @property
+    def lm(self) -> LandmarkMap:
+        """The landmarks (the keyframes')."""
+        return self.keyframes.landmarks
+
+    @property
+    def kf_frame(self) -> np.ndarray:
+        """Frame index of each keyframe (read-only)."""
+        return self.keyframes.frames
+
+    @property
+    def kf_pose(self) -> np.ndarray:
+        """Each keyframe's bundle-adjusted camera-to-world pose (read-only)."""
+        return self.keyframes.poses
 
     # -- public ------------------------------------------------------------------------------------
     def track(self, index: int, rgb: np.ndarray, depth: np.ndarray, static_mask: Optional[np.ndarray] = None,
@@ -230,15 +246,6 @@ class Backend:
         self.frame_rel[-1] = pose if ref < 0 else np.linalg.inv(self.kf_pose[ref]) @ pose
         self.last_pose = pose.copy()
 
-    def forget(self, frame_index: int, instance_ids) -> int:
-        """Leave out of tracking and bundle adjustment the landmarks that the keyframe of frame
-        ``frame_index`` made on instances ``instance_ids`` (the ones called dynamic now; its other
-        landmarks come back); returns how many are left out (0 when that frame is no keyframe)."""
-        kf = np.flatnonzero(self.kf_frame == int(frame_index))
-        if len(kf) == 0:
-            return 0
-        return self.lm.set_moving(int(kf[0]), instance_ids)
-
     def trajectory(self) -> np.ndarray:
         """Every tracked frame's camera-to-world pose (F×4×4), each composed with its reference
         keyframe's current pose (so bundle adjustment moves the frames between keyframes too)."""
@@ -252,22 +259,18 @@ class Backend:
         return {int(f): p.copy() for f, p in zip(self.kf_frame, self.kf_pose, strict=False)}
 
     def state_dict(self) -> dict:
-        """Everything needed to continue identically (numpy arrays only)."""
+        """Everything besides the keyframes (``keyframes.state_dict()``, which the keyframe store
+        saves) needed to continue identically (numpy arrays only)."""
         nan = np.full((4, 4), np.nan)
-        d = {f"lm.{k}": v for k, v in self.lm.state_dict().items()}
-        d.update({"kf_frame": self.kf_frame.copy(), "kf_pose": self.kf_pose.copy(),
-                  "ref_kf": np.array(self.ref_kf), "last_kf_index": np.array(self.last_kf_index),
-                  "lost_run": np.array(self.lost_run), "first_pose": self.first_pose.copy(),
-                  "frame_ref": self.frame_ref.copy(), "frame_rel": self.frame_rel.copy(),
-                  "last_pose": nan if self.last_pose is None else self.last_pose.copy(),
-                  "prev_pose": nan if self.prev_pose is None else self.prev_pose.copy()})
+        d = {"ref_kf": np.array(self.ref_kf), "last_kf_index": np.array(self.last_kf_index),
+             "lost_run": np.array(self.lost_run), "first_pose": self.first_pose.copy(),
+             "frame_ref": self.frame_ref.copy(), "frame_rel": self.frame_rel.copy(),
+             "last_pose": nan if self.last_pose is None else self.last_pose.copy(),
+             "prev_pose": nan if self.prev_pose is None else self.prev_pose.copy()}
         d.update({f"motion.{k}": v for k, v in self.motion.state_dict().items()})
         return d
 
     def load_state_dict(self, d: dict) -> None:
-        self.lm.load_state_dict({k[3:]: v for k, v in d.items() if k.startswith("lm.")})
-        self.kf_frame = np.array(d["kf_frame"], np.int64)
-        self.kf_pose = np.array(d["kf_pose"], np.float64).reshape(-1, 4, 4)
         self.ref_kf = int(d["ref_kf"])
         self.last_kf_index = int(d["last_kf_index"])
         self.lost_run = int(d["lost_run"])
@@ -329,9 +332,7 @@ class Backend:
                          kp_rows: np.ndarray, origin: Optional[np.ndarray] = None) -> np.ndarray:
         """New keyframe: observations of the tracked landmarks, landmarks from the keypoints with
         depth that matched none, culling, local bundle adjustment.  Returns its refined pose."""
-        kf = len(self.kf_frame)
-        self.kf_frame = np.append(self.kf_frame, int(index))
-        self.kf_pose = np.concatenate([self.kf_pose, pose[None]])
+        kf = self.keyframes.add(index, pose)
         self.last_kf_index = int(index)
         if len(lm_ids):
             self.lm.observe(kf, lm_ids, kp.subset(kp_rows))
@@ -358,7 +359,7 @@ class Backend:
                                       self.lm.obs_lm, self.lm.obs_uv, self.lm.obs_depth, self.lm.obs_octave, self.lm.obs_dsig,
                                       self.cfg.huber_px)
         for k, T in res.poses.items():
-            self.kf_pose[k] = T
+            self.keyframes.set_pose(k, T)
         self.lm.pos[res.ids] = res.pos
         self.lm.drop_observations(res.outlier)
         return self.kf_pose[kf].copy()

@@ -1,7 +1,76 @@
-"""When a tracked frame becomes a keyframe: by overlap with the reference keyframe (ORB-SLAM2's
-rule for RGB-D), or when too few of its close keypoints are tracked, or after a maximum gap."""
+"""The backend's keyframes: which frames they are, their bundle-adjusted poses and the landmarks
+they made and observe (:class:`LandmarkKeyframes`, held by the run's keyframe store beside the
+neural map's ray keyframes); and when a tracked frame becomes one (:func:`need_keyframe`: by
+overlap with the reference keyframe, ORB-SLAM2's rule for RGB-D, or when too few of its close
+keypoints are tracked, or after a maximum gap)."""
 
 from __future__ import annotations
+
+import numpy as np
+
+from dynslam_cli.backend.landmarks import LandmarkMap
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+class LandmarkKeyframes:
+    """Keyframe ``k`` (0, 1, ... in insertion order) is frame ``frames[k]`` at camera-to-world pose
+    ``poses[k]``; ``landmarks`` (a :class:`~dynslam_cli.backend.landmarks.LandmarkMap`) refers to
+    keyframes by ``k``.  ``frames`` and ``poses`` are read-only views: they change through
+    :meth:`add` and :meth:`set_pose`; :meth:`forget` leaves out the landmarks a keyframe made on
+    instances found to move."""
+
+    def __init__(self):
+        self.landmarks = LandmarkMap()
+        self._frames = np.zeros(0, np.int64)
+        self._poses = np.zeros((0, 4, 4))
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def frames(self) -> np.ndarray:
+        return _read_only(self._frames)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return _read_only(self._poses)
+
+    def add(self, frame_index: int, pose_c2w: np.ndarray) -> int:
+        """A new keyframe at frame ``frame_index``; returns its number ``k``."""
+        self._frames = np.append(self._frames, int(frame_index))
+        self._poses = np.concatenate([self._poses, np.asarray(pose_c2w, np.float64)[None]])
+        return len(self._frames) - 1
+
+    def set_pose(self, k: int, pose_c2w: np.ndarray) -> None:
+        self._poses[int(k)] = pose_c2w
+
+    def index_of(self, frame_index: int) -> int:
+        """The keyframe number of frame ``frame_index``, -1 when that frame is no keyframe."""
+        k = np.flatnonzero(self._frames == int(frame_index))
+        return int(k[0]) if len(k) else -1
+
+    def forget(self, frame_index: int, instance_ids) -> int:
+        """Leave out of tracking and bundle adjustment the landmarks that the keyframe of frame
+        ``frame_index`` made on instances ``instance_ids`` (the ones called dynamic now; its other
+        landmarks come back); returns how many are left out (0 when that frame is no keyframe)."""
+        k = self.index_of(frame_index)
+        return 0 if k < 0 else self.landmarks.set_moving(k, instance_ids)
+
+    def state_dict(self) -> dict:
+        """Numpy arrays only: the landmark map's (prefixed ``lm.``), ``kf_frame`` and ``kf_pose``."""
+        d = {f"lm.{k}": v for k, v in self.landmarks.state_dict().items()}
+        d.update({"kf_frame": self._frames.copy(), "kf_pose": self._poses.copy()})
+        return d
+
+    def load_state_dict(self, d: dict) -> None:
+        self.landmarks.load_state_dict({k[3:]: v for k, v in d.items() if k.startswith("lm.")})
+        self._frames = np.array(d["kf_frame"], np.int64)
+        self._poses = np.array(d["kf_pose"], np.float64).reshape(-1, 4, 4)
 
 
 def need_keyframe(inliers: int, ref_tracked: int, since_last: int, untracked_depth: int, n_keyframes: int,

@@ -129,7 +129,8 @@ class FrameLoop:
             self.slam.keyframes.register_instances(kf.frame_id, *self.mm.keyframe_instances(inst))
             carve(self.slam.keyframes, self.slam.intr, frame.depth, inst.static_mask, self.carve_margin, self.width)
         fid = self.slam.n_frames - 1
-        if self.slam.backend_keyframe and not self.slam.keyframes.has_instances(fid):  # its landmarks carry these ids
+        if self.slam.keyframes.landmark_keyframes.index_of(fid) >= 0 and not self.slam.keyframes.has_instances(fid):
+            # a backend keyframe without neural-map rays: its landmarks carry these instance ids
             self.slam.keyframes.register_instances(fid, *self.mm.keyframe_instances(inst))
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask

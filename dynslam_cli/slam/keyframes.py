@@ -1,10 +1,13 @@
-"""The keyframe store: each keyframe keeps a random subset of its pixels as rays for replay.
+"""The keyframe store: the neural map's keyframes, each keeping a random subset of its pixels as
+rays for replay, and the backend's keyframes with their landmarks.
 
 Per stored ray: pixel (u, v), colour, depth, instance id (int32, -1 = none) and a mutable
 ``usable`` flag (False = the dynamic module excluded the ray; bundle adjustment skips it).
 :class:`KeyframeStore` holds the keyframes of a run with what learning to forget needs of them:
-the instances of each keyframe (the classifier's features, the class prior), and the backend
-landmarks made on those instances (dropped through the store when an instance is found to move).
+the instances of each keyframe (the classifier's features, the class prior), and the backend's
+keyframes (:class:`~dynslam_cli.backend.keyframes.LandmarkKeyframes`: poses, landmarks, the
+instance each landmark was made on), whose landmarks on an instance found to move are left out
+through the store.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dynslam_cli.backend.keyframes import LandmarkKeyframes
 from dynslam_cli.geometry.camera import pixel_dirs, transform
 
 
@@ -64,15 +68,15 @@ class Keyframe:
 
 
 class KeyframeStore:
-    """The keyframes of a run (a sequence: ``len``, iteration, indexing and slices as a list) and,
-    for the frames whose instances were registered (neural-map keyframes and backend keyframes),
-    the instances' classifier features and class prior.  ``landmarks``: the backend (anything with
-    ``forget(frame_id, instance_ids)``), or None without one."""
+    """The neural map's keyframes of a run (a sequence: ``len``, iteration, indexing and slices as
+    a list), the backend's keyframes and landmarks (``landmark_keyframes``, which the backend
+    builds; empty without one) and, for the frames whose instances were registered (keyframes of
+    either kind), the instances' classifier features and class prior."""
 
     def __init__(self):
         self._frames: list[Keyframe] = []
         self._instances: dict[int, dict] = {}
-        self.landmarks = None
+        self.landmark_keyframes = LandmarkKeyframes()
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -130,12 +134,12 @@ class KeyframeStore:
 
     def forget(self, dynamic: dict) -> int:
         """``dynamic``: frame id -> the instance ids now called dynamic, for every registered frame.
-        The backend drops the landmarks made on them; every keyframe's usable rays are recomputed
-        (rays of, or within the mask dilation of, a dynamic instance; rays seen gone stay
-        unusable; rays of instances called static again are usable again).  Returns rays masked."""
-        if self.landmarks is not None:
-            for fid, dyn_ids in dynamic.items():
-                self.landmarks.forget(fid, dyn_ids)
+        The landmarks a backend keyframe made on them are left out (those of instances called static
+        again come back); every keyframe's usable rays are recomputed (rays of, or within the mask
+        dilation of, a dynamic instance; rays seen gone stay unusable; rays of instances called
+        static again are usable again).  Returns rays masked."""
+        for fid, dyn_ids in dynamic.items():
+            self.landmark_keyframes.forget(fid, dyn_ids)
         masked = 0
         for kf in self._frames:
             if kf.frame_id not in dynamic:
@@ -153,13 +157,15 @@ class KeyframeStore:
     def state_dict(self) -> dict:
         return {"keyframes": [k.to_dict() for k in self._frames],
                 "instances": {k: {"feats": v["feats"].copy(), "prior": v["prior"].copy()}
-                              for k, v in self._instances.items()}}
+                              for k, v in self._instances.items()},
+                "landmark_keyframes": self.landmark_keyframes.state_dict()}
 
     def load_state_dict(self, d: dict) -> None:
         self._frames = [Keyframe.from_dict(k) for k in d["keyframes"]]
         self._instances = {}
         for k, v in d["instances"].items():
             self.register_instances(int(k), np.asarray(v["feats"]), np.asarray(v["prior"]))
+        self.landmark_keyframes.load_state_dict(d["landmark_keyframes"])  # in place: a backend holds it
 
 
 DEPTH_STRIDE = 4

@@ -79,9 +79,9 @@ class Mapper:
             s.map_opt = torch.optim.Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map,
                                          betas=(0.9, 0.99), eps=1e-15)
 
-    def map(self, frame, cur: CurrentFrame, instance_ids: Optional[np.ndarray] = None) -> tuple:
-        """Bundle adjustment when due, then keyframe insertion when due, for the tracked frame
-        ``cur``: (MapResult or None when nothing ran, whether the backend inserted a keyframe)."""
+    def map(self, frame, cur: CurrentFrame, instance_ids: Optional[np.ndarray] = None) -> Optional[MapResult]:
+        """The backend's keyframe when due, bundle adjustment when due, then keyframe insertion when
+        due, for the tracked frame ``cur``; None when nothing ran."""
         s = self.s
         mc = s.cfg.mapping
         t0 = time.perf_counter()
@@ -105,8 +105,8 @@ class Mapper:
             self.add_keyframe(cur, instance_ids)
             kf = True
         if not ba and not kf and not backend_keyframe:
-            return None, backend_keyframe
-        return MapResult(kf, ba, iters, float(loss), (time.perf_counter() - t0) * 1000), backend_keyframe
+            return None
+        return MapResult(kf, ba, iters, float(loss), (time.perf_counter() - t0) * 1000)
 
     def add_keyframe(self, cur: CurrentFrame, instance_ids) -> Keyframe:
         """Store a fraction (mapping.keyframe_ray_fraction) of ``cur``'s pixels, off depth edges,

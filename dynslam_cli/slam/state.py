@@ -87,7 +87,7 @@ class SlamState:
         self.bounds = None if bounds is None else np.asarray(bounds, np.float64)
         self.model: Optional[NeuralMap] = None
         self.map_opt: Optional[torch.optim.Optimizer] = None
-        self.keyframes = KeyframeStore()  # the neural map's keyframes, their instances, the landmark handle
+        self.keyframes = KeyframeStore()  # the neural map's and the backend's keyframes, their instances
         self.poses: list[np.ndarray] = []       # latest estimate of every frame (c2w)
         self.rel: list[Optional[np.ndarray]] = []  # pose relative to its keyframe at tracking time
         self.kf_of: list[int] = []               # keyframe frame id each frame is expressed against
@@ -140,8 +140,7 @@ class SlamState:
         i = self.intr
         kw = {} if first_pose is None else {"first_pose": first_pose}
         self.backend = Backend((i.fx, i.fy, i.cx, i.cy, self.W, self.H), self.cfg.backend, depth_noise=self.depth_noise,
-                               **kw)
-        self.keyframes.landmarks = self.backend  # forgetting an instance drops its landmarks too
+                               keyframes=self.keyframes.landmark_keyframes, **kw)  # forgetting reaches its landmarks
         return self.backend
 
     def event(self, idx: int, kind: str, detail: str) -> None:

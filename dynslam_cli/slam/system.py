@@ -42,7 +42,6 @@ class SLAM(SlamState):
         super().__init__(cfg, intrinsics, device, bounds, depth_noise)
         self.frontend = Frontend(self)
         self.mapper = Mapper(self)
-        self.backend_keyframe = False  # whether the last map() inserted a backend keyframe
 
     @property
     def last_icp(self):
@@ -81,8 +80,7 @@ class SLAM(SlamState):
         if cur is None or cur.idx != self.n_frames - 1:
             raise DynslamError("SLAM.map() must follow track() of the same frame")
         self.frontend.set_mask(cur, mask)
-        res, self.backend_keyframe = self.mapper.map(frame, cur, instance_ids)
-        return res
+        return self.mapper.map(frame, cur, instance_ids)
 
     def process(self, frame, mask=None, instance_ids=None) -> FrameResult:
         t0 = time.perf_counter()
@@ -164,6 +162,6 @@ class SLAM(SlamState):
         self.cur = None
         pd = d.get("prev_depth")
         self.frontend.prev_depth = None if pd is None else np.asarray(pd, np.float32)
-        self.backend = self.keyframes.landmarks = None
+        self.backend = None
         if d.get("backend") is not None:
             self.make_backend().load_state_dict(d["backend"])
