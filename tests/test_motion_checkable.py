@@ -35,6 +35,22 @@ def test_checkable_depth_drops_edges_and_unseen_space():
     assert out3[:, -5:].all()
 
 
+def test_checkable_depth_leaves_out_the_border_the_map_was_never_taught():
+    depth = np.full((48, 64), 2.0, np.float32)
+    kf = SimpleNamespace(pose_c2w=np.eye(4), depth_small=subsample_depth(depth))
+    out, fwd = checkable_depth(depth, np.eye(4), INTR, [kf], 0.3, step=1, border=4)
+    assert out[24, 32] == 2.0 and fwd[24, 32]
+    assert not out[:, :4].any() and not out[:, -4:].any() and not out[:4].any() and not out[-4:].any()
+    assert not fwd[:, :4].any() and not fwd[:4].any()
+    # the camera moved right: what was at the keyframe's right edge is now inside the view, still untaught
+    moved = np.eye(4)
+    moved[0, 3] = 0.2  # 5 px at 2 m and fx 50
+    out2, _ = checkable_depth(depth, moved, INTR, [kf], 0.3, step=1, border=4)
+    assert out2[24, 30].all() and not out2[24, 55:].any()
+    # no border: the whole view as before
+    assert checkable_depth(depth, np.eye(4), INTR, [kf], 0.3, step=1)[0][:, 3].all()
+
+
 def test_checkable_depth_knows_what_keyframes_saw_behind_occluders():
     seen = np.full((48, 64), 2.0, np.float32)
     seen[20:32, 20:32] = 1.0  # the keyframe saw a box in front of the wall

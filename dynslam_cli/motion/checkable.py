@@ -18,23 +18,26 @@ from dynslam_cli.slam.keyframes import DEPTH_STRIDE, depth_edges
 FRUSTUM_KEYFRAMES = 20
 
 
-def project_into(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int):
+def project_into(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int, border: int = 0):
     """World points into a camera: camera-frame points, pixel u, v and whether each lands inside
-    the W×H image in front of the camera."""
+    the W×H image (less ``border`` pixels on every side) in front of the camera."""
     pc = transform(inv_np(pose_c2w), world)
     uv, z = project(pc, intr.fx, intr.fy, intr.cx, intr.cy)
     u, v = uv[:, 0], uv[:, 1]
-    inside = (z > 0.05) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    b = max(0, int(border))
+    inside = (z > 0.05) & (u >= b) & (u <= W - 1 - b) & (v >= b) & (v <= H - 1 - b)
     return pc, u, v, inside
 
 
 def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
-                        occlusion_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+                        occlusion_margin: float = 0.3, border: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """What the keyframes saw of the current frame's back-projected points (at ``pose_c2w``).
 
     Returns two (H, W) bool masks, evaluated every ``step``-th pixel and upsampled (nearest):
 
-    - ``in_frustum``: the point lies inside the view frustum of at least one keyframe;
+    - ``in_frustum``: the point lies inside the view frustum of at least one keyframe, less the
+      ``border`` pixels at the edges of its image (the map is never taught from those rays:
+      ``tracking.ignore_border``);
     - ``observed``: for at least one keyframe the point is inside its frustum and the keyframe's
       measured depth there (``depth_small``) does not stop more than ``occlusion_margin`` in front
       of it: that keyframe saw the point, or the free space where it now is, not an occluder.
@@ -55,7 +58,7 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     frustum = np.zeros(len(world), bool)
     observed = np.zeros(len(world), bool)
     for kf in keyframes:
-        pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H)
+        pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H, border)
         frustum |= inside
         small = kf.depth_small
         if small is not None and inside.any():
@@ -74,7 +77,7 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
 
 
 def checkable_depth(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, depth_threshold: float,
-                    step: int = 4, frustum_keyframes: int = FRUSTUM_KEYFRAMES):
+                    step: int = 4, frustum_keyframes: int = FRUSTUM_KEYFRAMES, border: int = 0):
     """What of the observed depth the map can judge: returns ``(depth, forward_ok)``.
 
     ``depth`` is the observation with these pixels set to 0 (invalid):
@@ -82,8 +85,9 @@ def checkable_depth(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, de
     - pixels within 2 px of a depth discontinuity (relative jump > 5 %), where a one-pixel
       misalignment between the reduced-resolution render and the observation reads as metres;
     - pixels whose 3-D point lies outside the view frustum of every one of the last
-      ``frustum_keyframes`` ``keyframes``: newly revealed space the map never observed, whose
-      rendered depth means nothing.
+      ``frustum_keyframes`` ``keyframes``, less their ``border`` pixels at the image edges (the
+      mapper's ``tracking.ignore_border``): space the map was never taught, newly revealed or at
+      the edge of every view so far, whose rendered depth means nothing.
 
     ``forward_ok`` (bool) marks the pixels where "observed in front of the map" is evidence of
     motion: some keyframe saw the point or the free space where it now is, not an occluder in
@@ -95,7 +99,8 @@ def checkable_depth(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, de
     out = np.where((d > 0) & ~depth_edges(d, 0.05, 2), d, 0.0).astype(np.float32)
     if not keyframes:
         return out, out > 0
-    frustum, observed = keyframe_visibility(d, pose_c2w, intr, keyframes[-frustum_keyframes:], step, depth_threshold)
+    frustum, observed = keyframe_visibility(d, pose_c2w, intr, keyframes[-frustum_keyframes:], step, depth_threshold,
+                                            border)
     out[~frustum] = 0.0
     return out, observed
 

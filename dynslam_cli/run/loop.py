@@ -87,7 +87,8 @@ class FrameLoop:
             raw_depth = r_depth
             t_render = (time.perf_counter() - t1) * 1e3
             judged_depth, forward_ok = checkable_depth(frame.depth, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
-                                                       self.mm.m.depth_threshold)
+                                                       self.mm.m.depth_threshold,
+                                                       border=self.slam.cfg.tracking.ignore_border)
             judged = dataclasses.replace(frame, depth=judged_depth)
             if CHECK_RADIUS > 0:
                 r_depth = closest_rendered(r_depth, judged.depth, CHECK_RADIUS)
