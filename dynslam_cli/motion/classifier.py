@@ -12,6 +12,7 @@ import torch
 import torch.nn as nn
 
 from dynslam_cli.errors import DynslamError
+from dynslam_cli.utils.adam import Adam
 
 
 @contextlib.contextmanager
@@ -120,7 +121,7 @@ class MotionClassifier:
         chk = torch.ones(len(y), dtype=torch.bool, device=self.device) if check is None else \
             torch.as_tensor(np.asarray(check, bool), device=self.device)
         loss_fn = nn.BCEWithLogitsLoss(weight=w)
-        opt = torch.optim.Adam(self.net.parameters(), lr=self.lr)
+        opt = Adam(self.net.parameters(), lr=self.lr)
         with torch.no_grad():
             before = float(loss_fn(self.net(x), y))
         steps = 0

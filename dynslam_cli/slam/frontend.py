@@ -21,6 +21,7 @@ from dynslam_cli.map.losses import ray_losses
 from dynslam_cli.map.render import n_samples, render_rays, sample_depths
 from dynslam_cli.slam.keyframes import valid_pixels
 from dynslam_cli.slam.state import EDGE_MARGIN, MIN_PIXELS, CurrentFrame, SlamState
+from dynslam_cli.utils.adam import Adam
 
 log = logging.getLogger(__name__)
 
@@ -154,7 +155,7 @@ class Frontend:
         d_t = d_t.view(iters, R)
         T0 = s.t(init)
         xi = torch.zeros(6, device=s.device, requires_grad=True)
-        opt = torch.optim.Adam([xi], lr=tc.lr)
+        opt = Adam([xi], lr=tc.lr)
         best_loss, best_xi = float("inf"), torch.zeros(6, device=s.device)
         s.set_map_grad(False)
         bad = ""

@@ -23,6 +23,7 @@ from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.map.render import n_samples, render_rays, sample_depths
 from dynslam_cli.slam.keyframes import Keyframe, subsample_depth, valid_pixels
 from dynslam_cli.slam.state import EDGE_MARGIN, CurrentFrame, SlamState
+from dynslam_cli.utils.adam import Adam
 
 # Margin (m) added around the first frame's points when map.bounds is null.
 AUTO_MARGIN = 2.0
@@ -71,13 +72,8 @@ class Mapper:
         with torch.random.fork_rng(devices=[]):  # initialise from run.seed, leave the global RNG alone
             torch.manual_seed(int(s.cfg.run.seed))
             s.model = NeuralMap(s.cfg.map, s.bounds).to(s.device)
-        kw = {"fused": True} if s.device.type in ("cpu", "cuda") else {}
-        try:
-            s.map_opt = torch.optim.Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map,
-                                         betas=(0.9, 0.99), eps=1e-15, **kw)
-        except (RuntimeError, TypeError):
-            s.map_opt = torch.optim.Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map,
-                                         betas=(0.9, 0.99), eps=1e-15)
+        s.map_opt = Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map, betas=(0.9, 0.99), eps=1e-15,
+                         fused=s.device.type in ("cpu", "cuda"))
 
     def map(self, frame, cur: CurrentFrame, instance_ids: Optional[np.ndarray] = None) -> Optional[MapResult]:
         """The backend's keyframe when due, bundle adjustment when due, then keyframe insertion when
@@ -182,7 +178,7 @@ class Mapper:
         lr_pose = float(mc.lr_pose)
         optimise_poses = (not first) and bool(opt_mask.sum() > 0) and lr_pose > 0 and s.backend is None
         xi = torch.zeros(n_p, 6, device=s.device, requires_grad=optimise_poses)
-        pose_opt = torch.optim.Adam([xi], lr=lr_pose) if optimise_poses else None
+        pose_opt = Adam([xi], lr=lr_pose) if optimise_poses else None
         S = n_samples(mp)
         # sample all iterations' rays up front
         cur_idx = torch.from_numpy(cur_idx_np).to(s.device) if n_cur else None

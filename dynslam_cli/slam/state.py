@@ -20,6 +20,7 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.geometry.camera import pixel_dirs
 from dynslam_cli.map.model import NeuralMap
 from dynslam_cli.slam.keyframes import KeyframeStore, depth_edges, valid_pixels
+from dynslam_cli.utils.adam import Adam
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +87,7 @@ class SlamState:
         self.H, self.W = int(intrinsics.height), int(intrinsics.width)
         self.bounds = None if bounds is None else np.asarray(bounds, np.float64)
         self.model: Optional[NeuralMap] = None
-        self.map_opt: Optional[torch.optim.Optimizer] = None
+        self.map_opt: Optional[Adam] = None
         self.keyframes = KeyframeStore()  # the neural map's and the backend's keyframes, their instances
         self.poses: list[np.ndarray] = []       # latest estimate of every frame (c2w)
         self.rel: list[Optional[np.ndarray]] = []  # pose relative to its keyframe at tracking time
