@@ -206,7 +206,7 @@ class Mapper:
             side = mp.SMOOTH_GRID * mp.SMOOTH_VOXEL
             hi = np.maximum(b[1] - side, b[0])
             smooth_box = s.t(np.stack([b[0], hi]))
-        last = float("nan")
+        last_t = None  # the last iteration's loss, read once after the loop (no device sync per iteration)
         accum = POSE_ACCUM_STEPS
         for it in range(iters):
             if optimise_poses:
@@ -231,7 +231,8 @@ class Mapper:
             if pose_opt is not None and ((it + 1) % accum == 0 or it == iters - 1):
                 pose_opt.step()  # on the pose gradients summed since the last pose step
                 pose_opt.zero_grad(set_to_none=True)
-            last = float(loss.detach())
+            last_t = loss.detach()
+        last = float("nan") if last_t is None else float(last_t)
         if not np.isfinite(last):
             s.event(cur.idx, "mapping-nonfinite", "bundle adjustment loss is not finite")
         if optimise_poses:
