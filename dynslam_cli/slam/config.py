@@ -32,7 +32,7 @@ class MappingConfig:
     lr_map: float = opt(0.01, "Learning rate of the grid and decoders.", above=0)
     lr_pose: float = opt(0.001, "Learning rate of keyframe poses in bundle adjustment, without the backend (with it "
                          "the backend's poses stand); 0 = the map only.", min=0)
-    first_iters: int = opt(200, "Mapping iterations on the first frame (Co-SLAM: 1000; the presets coslam and paper "
+    first_iters: int = opt(50, "Mapping iterations on the first frame (Co-SLAM: 1000; the presets coslam and paper "
                            "keep that, as their dense tracking starts from the first frame's map).", min=0)
     final_iters: int = opt(0, "Bundle adjustment iterations over all keyframes (and the last frame) after the last "
                            "frame, before the trajectory is written (SLAM.finish); 0 = none (Co-SLAM).", min=0)
