@@ -57,3 +57,15 @@ class TestMovingByReprojection:
     def test_no_matches(self, count):
         out = moving_by_reprojection(np.zeros((4, 4), np.int32), np.zeros((0, 2)), np.zeros(0, bool), count)
         assert out.shape == (count,) and not out.any()
+
+    def test_does_not_import_scipy_stats(self):
+        # scipy.stats costs 0.6-1.7 s to import, paid at a run's first check when this module used binom.sf
+        import subprocess
+        import sys
+
+        code = ("import sys, numpy as np\nfrom dynslam_cli.motion.reprojection import moving_by_reprojection\n"
+                "ids = np.ones((4, 4), np.int32)\n"
+                "moving_by_reprojection(ids, np.ones((3, 2)), np.array([True, False, False]), 1)\n"
+                "print('scipy.stats' in sys.modules)\n")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+        assert out.strip() == "False"
