@@ -7,7 +7,7 @@ import pytest
 
 from dynslam_cli.backend.backend import Backend
 from dynslam_cli.backend.config import BackendConfig
-from dynslam_cli.backend.keyframes import need_keyframe
+from dynslam_cli.backend.keyframes import LandmarkKeyframes, need_keyframe
 
 W, H, FOC = 320, 240, 280.0
 INTR = (FOC, FOC, W / 2, H / 2, W, H)
@@ -258,3 +258,34 @@ def test_reprojection_evidence_of_the_last_tracked_frame():
     be.track(1, *FRAMES[1])
     uv, ok = be.reprojection_evidence()
     assert uv.shape == (len(ok), 2) and len(ok) >= 100 and ok.mean() > 0.9  # a still scene reprojects
+
+
+def test_a_place_seen_again_is_tracked_against_its_old_landmarks(monkeypatch):
+    """Out 0.8 m along the wall and back, with a local map of 4 covisible keyframes: the first
+    keyframe's landmarks have left it by the turn; back at the start, the frames match them again
+    (LandmarkKeyframes.in_view) instead of only the landmarks made on the way back, and the drift
+    of the way out and back is gone."""
+    def cam(i):
+        T = np.eye(4)
+        T[0, 3] = 0.4 * (1 - np.cos(np.pi * i / 40))  # out and back, turning smoothly
+        return T
+
+    frames = [_render(cam(i)) for i in range(81)]
+    cfg = BackendConfig(features=400, window=2)
+    cfg.KEYFRAME_MAX_GAP = 4
+
+    def run():
+        be = Backend(INTR, cfg)
+        outs = _run(be, frames)
+        assert not any(o.lost for o in outs)
+        lm = be.lm
+        late = np.isin(lm.obs_kf, np.flatnonzero(be.kf_frame > 70))  # keyframes back near the start
+        old = int((lm.first_kf[lm.obs_lm[late]] == 0).sum())  # their observations of the first keyframe's landmarks
+        err = max(np.linalg.norm(o.pose_c2w[:3, 3] - cam(i)[:3, 3]) for i, o in enumerate(outs) if i > 70)
+        return old, err
+
+    old, err = run()
+    assert old >= 100 and err < 0.02
+    monkeypatch.setattr(LandmarkKeyframes, "in_view", lambda self, *a, **k: [])
+    old, err = run()
+    assert old < 50 and err > 0.04  # covisibility alone does not reach them: the way back drifts

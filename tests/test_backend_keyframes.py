@@ -62,3 +62,58 @@ class TestLandmarkKeyframes:
             assert np.array_equal(back.landmarks.state_dict()[k], v), k
         back.set_pose(0, _pose(1.0))  # the copy is its own
         assert kfs.poses[0, 0, 3] == 0.0
+
+
+class TestInView:
+    """LandmarkKeyframes.in_view: the keyframes whose landmarks a camera would see again."""
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+
+    def _map(self) -> LandmarkKeyframes:
+        """Keyframe 0 at the origin looking down +z at 30 points 2 m ahead; keyframe 1 at x = 5
+        looking at 10 points 2 m ahead of it; keyframe 2 at the origin looking down -z at 30
+        points behind the origin (the same place, the other way)."""
+        kfs = LandmarkKeyframes()
+        rng = np.random.default_rng(0)
+        turn = np.diag([-1.0, 1.0, -1.0, 1.0])  # 180 degrees about y
+        for k, (pose, n, ahead) in enumerate([(_pose(0.0), 30, 2.0), (_pose(5.0), 10, 2.0), (turn, 30, -2.0)]):
+            kfs.add(10 * k, pose)
+            X = np.c_[pose[0, 3] + rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n), np.full(n, ahead)]
+            kfs.landmarks.create(k, _keypoints(n), X, pose[:3, 3])
+        return kfs
+
+    def test_known_counts_and_order(self):
+        kfs = self._map()
+        assert kfs.in_view(_pose(0.1), self.K, 100, 100, n=5, min_count=1) == [0]
+        assert kfs.in_view(_pose(5.0), self.K, 100, 100, n=5, min_count=1) == [1]
+        turn = np.diag([-1.0, 1.0, -1.0, 1.0])
+        assert kfs.in_view(turn, self.K, 100, 100, n=5, min_count=1) == [2]  # the points behind, not those ahead
+        back = turn.copy()
+        back[2, 3] = 4.0  # keyframe 0's points 2 m ahead, but seen from their other side
+        assert kfs.in_view(back, self.K, 100, 100, n=5, min_count=1) == []
+        back[:3, :3] = np.eye(3)
+        back[2, 3] = -0.5  # behind keyframe 0, looking the same way: 2.5 m from its points
+        assert kfs.in_view(back, self.K, 100, 100, n=5, min_count=1) == [0]
+
+    def test_exclude_n_and_min_count(self):
+        kfs = self._map()
+        wide = np.array([[10.0, 0, 50], [0, 10.0, 50], [0, 0, 1]])  # sees x = 0 and x = 5 from 1 m back
+        pose = _pose(2.5)
+        pose[2, 3] = -8.0  # 10 m from the points: beyond the distance range of the keyframes (2 m)
+        assert kfs.in_view(pose, wide, 100, 100, n=5, min_count=1) == []
+        pose[2, 3] = 0.0
+        both = kfs.in_view(pose, wide, 100, 100, n=5, min_count=1)
+        assert both == [0, 1]  # 30 landmarks, then 10
+        assert kfs.in_view(pose, wide, 100, 100, n=1, min_count=1) == [0]
+        assert kfs.in_view(pose, wide, 100, 100, n=5, min_count=11) == [0]
+        assert kfs.in_view(pose, wide, 100, 100, n=5, min_count=1, exclude=[0]) == [1]
+
+    def test_moving_and_culled_landmarks_do_not_count(self):
+        kfs = self._map()
+        kfs.landmarks.moving[:25] = True
+        kfs.landmarks.kill(np.arange(len(kfs.landmarks)) < 3)
+        assert kfs.in_view(_pose(0.0), self.K, 100, 100, n=5, min_count=6) == []
+        assert kfs.in_view(_pose(0.0), self.K, 100, 100, n=5, min_count=5) == [0]
+
+    def test_empty(self):
+        assert LandmarkKeyframes().in_view(np.eye(4), self.K, 100, 100, n=5, min_count=1) == []

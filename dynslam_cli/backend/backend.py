@@ -1,7 +1,8 @@
 """`Backend`: ORB-SLAM2-style RGB-D tracking and local mapping on static pixels.
 
 Per frame: ORB keypoints on static pixels → the motion model's guess (``motion.MotionFilter``) →
-match the local map (the landmarks of the reference keyframe's covisible keyframes) → robust
+match the local map (the landmarks of the reference keyframe's covisible keyframes, and of the
+keyframes whose landmarks the guess would see again: ``LandmarkKeyframes.in_view``) → robust
 pose-only optimisation (wider search, then PnP relocalisation, else ``lost``) → the pose fused with
 the motion model's prediction → keyframe decision by overlap → on a keyframe:
 its observations, new landmarks from its unmatched keypoints with depth, culling, and local bundle
@@ -128,7 +129,11 @@ class Backend:
                 self.commit()
             return out
         guess = self.motion.predict(self.last_pose, stamp)
-        ids = self.lm.seen_by(self._local_keyframes(2 * self.cfg.window))
+        local = self._local_keyframes(2 * self.cfg.window)
+        # and the keyframes of a place seen before that the guess looks at again (not covisible with the newer ones)
+        local += self.keyframes.in_view(guess, self.cam.K, self.cam.width, self.cam.height, self.cfg.window,
+                                        self.cfg.min_matches, exclude=local)
+        ids = self.lm.seen_by(local)
         tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
                          lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.SEARCH_PX,
                          self.cfg.huber_px, self.cfg.min_matches, seed=index)

@@ -8,7 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from dynslam_cli.backend.features import SCALE, project
 from dynslam_cli.backend.landmarks import LandmarkMap
+
+# A landmark a keyframe observed is in view again (ORB-SLAM's isInFrustum) when it projects into the image in front of
+# the camera, at a camera distance within this factor of the keyframe's (the ORB pyramid's scale range, both ways)
+# and seen from a direction within 60 degrees of the keyframe's.
+IN_VIEW_DISTANCE_RATIO = SCALE ** 4
+IN_VIEW_MIN_COS = 0.5
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -53,6 +60,33 @@ class LandmarkKeyframes:
         """The keyframe number of frame ``frame_index``, -1 when that frame is no keyframe."""
         k = np.flatnonzero(self._frames == int(frame_index))
         return int(k[0]) if len(k) else -1
+
+    def in_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int, n: int, min_count: int,
+                exclude=()) -> list[int]:
+        """Up to ``n`` keyframes (not in ``exclude``), most first, that each observed at least
+        ``min_count`` landmarks a camera at ``pose_c2w`` (intrinsics ``K``, image ``width`` ×
+        ``height``) would see again: in its image, at a distance and from a direction close to the
+        keyframe's (:data:`IN_VIEW_DISTANCE_RATIO`, :data:`IN_VIEW_MIN_COS`).  Covisibility links
+        keyframes that matched the same landmarks; these are the keyframes of a place the camera
+        comes back to, whose landmarks it made again because nothing linked them to the newer ones."""
+        lm = self.landmarks
+        if len(self) == 0 or n <= 0 or len(lm.obs_lm) == 0:
+            return []
+        use = (lm.alive & ~lm.moving)[lm.obs_lm]
+        okf, olm = lm.obs_kf[use], lm.obs_lm[use]
+        X = lm.pos[olm]
+        uv, z = project(pose_c2w, X, K)
+        v_now = X - pose_c2w[:3, 3]
+        v_kf = X - self._poses[okf, :3, 3]
+        d_now, d_kf = np.linalg.norm(v_now, axis=1), np.linalg.norm(v_kf, axis=1)
+        cos = (v_now * v_kf).sum(1) / np.maximum(d_now * d_kf, 1e-12)
+        ratio = d_now / np.maximum(d_kf, 1e-12)
+        seen = ((z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+                & (cos >= IN_VIEW_MIN_COS) & (ratio <= IN_VIEW_DISTANCE_RATIO) & (ratio >= 1.0 / IN_VIEW_DISTANCE_RATIO))
+        counts = np.bincount(okf[seen], minlength=len(self))
+        counts[np.asarray(list(exclude), np.int64)] = 0
+        order = np.lexsort((-np.arange(len(self)), -counts))  # most first; ties: newest first
+        return [int(k) for k in order[:n] if counts[k] >= max(1, min_count)]
 
     def forget(self, frame_index: int, instance_ids) -> int:
         """Leave out of tracking and bundle adjustment the landmarks that the keyframe of frame
