@@ -147,6 +147,12 @@ def project(T_c2w: np.ndarray, X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray
     return camera.project(pc, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
 
 
+def in_image(uv: np.ndarray, z: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Which projections (pixels ``uv`` N×2, depths ``z``, as :func:`project` gives them) land in a
+    ``width`` × ``height`` image in front of the camera."""
+    return (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+
+
 def backproject(kp: Keypoints, K: np.ndarray, T_c2w: np.ndarray) -> np.ndarray:
     """World points (N×3) of keypoints with depth."""
     z = kp.depth

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dynslam_cli.backend.features import SCALE, project
+from dynslam_cli.backend.features import SCALE, in_image, project
 from dynslam_cli.backend.landmarks import LandmarkMap
 
 # A landmark a keyframe observed is in view again (ORB-SLAM's isInFrustum) when it projects into the image in front of
@@ -70,7 +70,8 @@ class LandmarkKeyframes:
         keyframes that matched the same landmarks; these are the keyframes of a place the camera
         comes back to, whose landmarks it made again because nothing linked them to the newer ones."""
         lm = self.landmarks
-        if len(self) == 0 or n <= 0 or len(lm.obs_lm) == 0:
+        skip = np.unique(np.asarray(list(exclude), np.int64))
+        if len(self) <= len(skip) or n <= 0 or len(lm.obs_lm) == 0:  # no keyframe left to add (a short sequence)
             return []
         use = (lm.alive & ~lm.moving)[lm.obs_lm]
         okf, olm = lm.obs_kf[use], lm.obs_lm[use]
@@ -81,10 +82,10 @@ class LandmarkKeyframes:
         d_now, d_kf = np.linalg.norm(v_now, axis=1), np.linalg.norm(v_kf, axis=1)
         cos = (v_now * v_kf).sum(1) / np.maximum(d_now * d_kf, 1e-12)
         ratio = d_now / np.maximum(d_kf, 1e-12)
-        seen = ((z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
-                & (cos >= IN_VIEW_MIN_COS) & (ratio <= IN_VIEW_DISTANCE_RATIO) & (ratio >= 1.0 / IN_VIEW_DISTANCE_RATIO))
+        seen = (in_image(uv, z, width, height) & (cos >= IN_VIEW_MIN_COS) & (ratio <= IN_VIEW_DISTANCE_RATIO)
+                & (ratio >= 1.0 / IN_VIEW_DISTANCE_RATIO))
         counts = np.bincount(okf[seen], minlength=len(self))
-        counts[np.asarray(list(exclude), np.int64)] = 0
+        counts[skip] = 0
         order = np.lexsort((-np.arange(len(self)), -counts))  # most first; ties: newest first
         return [int(k) for k in order[:n] if counts[k] >= max(1, min_count)]
 

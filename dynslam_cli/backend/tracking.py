@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dynslam_cli.backend.features import SCALE, Keypoints, hamming, project
+from dynslam_cli.backend.features import SCALE, Keypoints, hamming, in_image, project
 from dynslam_cli.data.types import Intrinsics
 from dynslam_cli.geometry.lie import so3_exp_np
 
@@ -159,7 +159,7 @@ def search_by_projection(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, des: np.
     from scipy.spatial import cKDTree
 
     uv, z = project(T_c2w, X, cam.K)
-    vis = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    vis = in_image(uv, z, cam.width, cam.height)
     none = np.zeros(0, np.int64)
     if not vis.any() or len(kp) == 0:
         return none, none, vis
