@@ -12,6 +12,9 @@ Works at a reduced resolution (``motion.geometric_width``, 320 px by default):
    component join the nearest one;
 4. the id map is upsampled to the frame (nearest).
 
+Steps 1–2 run as numba kernels (:mod:`dynslam_cli.motion._segment_kernels`), the same edges as
+numpy's whole-array expressions bit for bit.
+
 Planar structures (walls, floor, table tops) become segments of their own, separated at creases;
 objects standing in front of them are separated by the depth step (and their contact line by the
 normal crease).
@@ -24,6 +27,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from dynslam_cli.motion import _segment_kernels as kernels
 from dynslam_cli.motion.segment_base import MIN_INSTANCE_AREA, relabel
 from dynslam_cli.motion.types import Segmentation, intrinsics_tuple
 
@@ -35,6 +39,7 @@ COLOR_JUMP = 40.0
 # Smallest segment as a fraction of the image: 0.2 % (synthetic movers are small and far; the oracle mask IoU, each
 # segment labelled by its ground-truth majority, is 0.84 / 0.74 on walker / kidnap at 320 px; docs/experiments.md).
 MIN_AREA = 0.002
+_NO_LAB = np.zeros((0, 0, 3), np.float32)
 
 
 def _intrinsics_tuple(intrinsics, w: int, h: int) -> tuple[float, float, float, float]:
@@ -90,17 +95,10 @@ class GeometricSegmenter:
         fx, fy, cx, cy = fx * w / W, fy * h / H, (cx + 0.5) * w / W - 0.5, (cy + 0.5) * h / H - 0.5
         u = (np.arange(w, dtype=np.float32) - cx) / fx
         v = (np.arange(h, dtype=np.float32) - cy) / fy
-        P = np.stack([dm * u[None, :], dm * v[:, None], dm], -1)
         # normals from central differences over 2 px of the validity-weighted 5×5 box-filtered points
+        # (the points are 0 where there is no depth)
         wv = cv2.blur(valid.astype(np.float32), (5, 5))
-        P = cv2.blur(P * valid[..., None], (5, 5)) / np.maximum(wv, 1e-6)[..., None]
-        du = np.zeros_like(P)
-        dv = np.zeros_like(P)
-        du[:, 1:-1] = P[:, 2:] - P[:, :-2]
-        dv[1:-1] = P[2:] - P[:-2]
-        n = np.cross(du, dv)
-        nn = np.linalg.norm(n, axis=-1, keepdims=True)
-        n = n / np.maximum(nn, 1e-12)
+        n = kernels.normals(cv2.blur(kernels.points(dm, u, v), (5, 5)), wv)
         nvalid = valid.copy()
         nvalid[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
         nvalid[1:-1] &= valid[2:] & valid[:-2]
@@ -111,34 +109,12 @@ class GeometricSegmenter:
             small = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != (W, H) else rgb
             lab = cv2.cvtColor(np.ascontiguousarray(small), cv2.COLOR_RGB2LAB).astype(np.float32)
             lab[..., 0] *= 100.0 / 255.0
-        edge = ~valid
-        o = self.normal_offset
-        for axis in (0, 1):
-            a = [slice(None), slice(None)]
-            b = [slice(None), slice(None)]
-            a[axis], b[axis] = slice(0, -1), slice(1, None)
-            a, b = tuple(a), tuple(b)
-            da, db = dm[a], dm[b]
-            dmin = np.minimum(da, db)
-            step = np.abs(da - db)
-            e = step > self.depth_jump * dmin
-            if lab is not None:
-                dc = np.linalg.norm(lab[a] - lab[b], axis=-1)
-                e |= (dc > self.color_jump) & (step > 0.25 * self.depth_jump * dmin)
-            e &= valid[a] & valid[b]
-            edge[a] |= e
-            edge[b] |= e
+        edge = kernels.step_edges(dm, _NO_LAB if lab is None else lab, self.depth_jump, self.color_jump,
+                                  0.25 * self.depth_jump)
         # normal creases: compare normals o px apart (the box filter spreads a crease over a few px);
         # the box filter mixes surfaces across depth steps, so normals near those are not compared
         smooth = nvalid & ~cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        for axis in (0, 1):
-            a = [slice(None), slice(None)]
-            b = [slice(None), slice(None)]
-            a[axis], b[axis] = slice(0, -o), slice(o, None)
-            a, b = tuple(a), tuple(b)
-            e = smooth[a] & smooth[b] & ((n[a] * n[b]).sum(-1) < self.cos_normal)
-            edge[a] |= e
-            edge[b] |= e
+        kernels.crease_edges(n, smooth, self.normal_offset, self.cos_normal, edge)
         core = ~cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         n_lab, lab_map = cv2.connectedComponents(core.astype(np.uint8), connectivity=4)
         counts = np.bincount(lab_map.ravel(), minlength=n_lab)
@@ -151,12 +127,10 @@ class GeometricSegmenter:
         # filter widens) join the nearest kept component within fill_radius
         unl = lab_map == 0
         if unl.any() and keep.any():
-            src = (lab_map == 0).astype(np.uint8)
-            dist, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
-            zero_y, zero_x = np.nonzero(src == 0)
-            pix_lab = np.zeros(int(nearest.max()) + 1, np.int32)
-            # DIST_LABEL_PIXEL numbers zero pixels in row-major scan order starting at 1
-            pix_lab[1:len(zero_y) + 1] = lab_map[zero_y, zero_x]
+            dist, nearest = cv2.distanceTransformWithLabels(unl.astype(np.uint8), cv2.DIST_L2, 3,
+                                                            labelType=cv2.DIST_LABEL_PIXEL)
+            # DIST_LABEL_PIXEL numbers the labelled (zero) pixels in row-major scan order starting at 1
+            pix_lab = np.concatenate([np.zeros(1, np.int32), lab_map[~unl]])
             fill = unl & (dist <= self.fill_radius)
             lab_map[fill] = pix_lab[nearest[fill]]
         return lab_map.astype(np.int32)
