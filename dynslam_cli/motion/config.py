@@ -15,7 +15,7 @@ class MotionConfig:
     segmenter_model: str = opt("", "ONNX file of a YOLOv8-seg-format model (FastSAM or YOLOv8-seg export).")
     segmenter_conf: float = opt(0.25, "yolo-seg: confidence threshold (FastSAM: 0.4 in its paper).", min=0, max=1)
     segmenter_iou: float = opt(0.7, "yolo-seg: NMS IoU threshold (class-aware for multi-class models).", min=0, max=1)
-    geometric_width: int = opt(320, "geometric: working width in pixels (ids are upsampled to the frame); cost grows "
+    geometric_width: int = opt(480, "geometric: working width in pixels (ids are upsampled to the frame); cost grows "
                                "with its square.", min=8)
     # --- encoding
     encoder: str = opt("effnet-lite0", "Instance encoder: effnet-lite0, onnx, clip, dino, blip, color-hist.",

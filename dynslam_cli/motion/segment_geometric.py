@@ -1,6 +1,6 @@
 """Weightless RGB-D instance segmenter: depth discontinuities + surface normals + colour.
 
-Works at a reduced resolution (``motion.geometric_width``, 320 px by default):
+Works at a reduced resolution (``motion.geometric_width``, 480 px by default):
 
 1. depth is median-filtered, back-projected and normals are taken from 2-px central differences;
 2. a pixel is an *edge* when, towards a 4-neighbour, the depth steps by more than
@@ -37,7 +37,8 @@ DEPTH_JUMP = 0.04
 NORMAL_ANGLE = 30.0
 COLOR_JUMP = 40.0
 # Smallest segment as a fraction of the image: 0.2 % (synthetic movers are small and far; the oracle mask IoU, each
-# segment labelled by its ground-truth majority, is 0.84 / 0.74 on walker / kidnap at 320 px; docs/experiments.md).
+# segment labelled by its ground-truth majority, is 0.85 / 0.77 on walker / kidnap at 480 px, 640x480 frames:
+# benchmarks/bench_segment.py, docs/experiments.md).
 MIN_AREA = 0.002
 _NO_LAB = np.zeros((0, 0, 3), np.float32)
 
@@ -52,7 +53,7 @@ def _intrinsics_tuple(intrinsics, w: int, h: int) -> tuple[float, float, float, 
 class GeometricSegmenter:
     name = "geometric"
 
-    def __init__(self, intrinsics=None, width: int = 320, depth_jump: float = DEPTH_JUMP,
+    def __init__(self, intrinsics=None, width: int = 480, depth_jump: float = DEPTH_JUMP,
                  normal_angle: float = NORMAL_ANGLE, color_jump: float = COLOR_JUMP, min_area: float = MIN_AREA,
                  min_instance_area: int = MIN_INSTANCE_AREA,
                  fill_radius: int = 6):
