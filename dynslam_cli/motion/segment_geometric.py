@@ -12,8 +12,9 @@ Works at a reduced resolution (``motion.geometric_width``, 480 px by default):
    component join the nearest one;
 4. the id map is upsampled to the frame (nearest).
 
-Steps 1–2 run as numba kernels (:mod:`dynslam_cli.motion._segment_kernels`), the same edges as
-numpy's whole-array expressions bit for bit.
+The point image, the normals and the edge tests of steps 1–2 are numba kernels
+(:mod:`dynslam_cli.motion._segment_kernels`: the same bits as numpy's whole-array expressions); the
+filters, dilations, components and fill are OpenCV's.
 
 Planar structures (walls, floor, table tops) become segments of their own, separated at creases;
 objects standing in front of them are separated by the depth step (and their contact line by the
