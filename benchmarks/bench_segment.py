@@ -44,12 +44,6 @@ def oracle_mask(ids: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return dynamic[ids]
 
 
-def iou(pred: np.ndarray, gt: np.ndarray) -> float:
-    """|pred ∩ gt| / |pred ∪ gt| (1 when both are empty)."""
-    union = int(np.logical_or(pred, gt).sum())
-    return 1.0 if union == 0 else int(np.logical_and(pred, gt).sum()) / union
-
-
 def sequence_path(spec: str, data_root: Path, frames: int) -> Path:
     """The folder of ``spec`` (bonn, a preset rendered on first use, or a folder)."""
     if spec == "bonn":
@@ -71,13 +65,14 @@ def sequence_path(spec: str, data_root: Path, frames: int) -> Path:
 
 
 def measure(path: Path, widths: list[int], step: int) -> list[dict]:
-    """One row per width: frames, segments and ms per frame (medians), oracle IoU (None without
-    ground-truth masks)."""
+    """One row per width: frames, segments and ms per frame (medians), oracle IoU (eval-masks' per-frame
+    IoU; None without ground-truth masks)."""
     import cv2
     import torch
 
     from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.data.open import open_sequence
+    from dynslam_cli.eval.masks import frame_scores
     from dynslam_cli.motion.segment_geometric import GeometricSegmenter
 
     torch.set_num_threads(1)
@@ -96,11 +91,9 @@ def measure(path: Path, widths: list[int], step: int) -> list[dict]:
             ms.append((time.perf_counter() - t0) * 1000)
             counts.append(int(ids.max()))
             if f.dynamic_mask is not None and f.dynamic_mask.any():
-                ious.append(iou(oracle_mask(ids, f.dynamic_mask), f.dynamic_mask))
-        has_gt = frames[0].dynamic_mask is not None
+                ious.append(frame_scores(oracle_mask(ids, f.dynamic_mask), f.dynamic_mask)["iou"])
         rows.append({"seq": path.name, "width": w, "frames": len(frames), "segments": statistics.median(counts),
-                     "ms": statistics.median(ms), "oracle_iou": float(np.mean(ious)) if ious else None,
-                     "moving_frames": len(ious) if has_gt else None})
+                     "ms": statistics.median(ms), "oracle_iou": float(np.mean(ious)) if ious else None})
     return rows
 
 

@@ -1,7 +1,6 @@
-"""The oracle labelling and IoU of benchmarks/bench_segment.py (the benchmark itself is run by hand)."""
+"""The oracle labelling of benchmarks/bench_segment.py (the benchmark itself is run by hand)."""
 
 import numpy as np
-import pytest
 
 import benchmark_scripts  # tests/benchmark_scripts.py
 
@@ -26,12 +25,3 @@ class TestOracleMask:
     def test_no_mover_no_mask(self):
         ids = np.arange(12).reshape(3, 4)
         assert not B.oracle_mask(ids, np.zeros((3, 4), bool)).any()
-
-
-class TestIou:
-    def test_known_values(self):
-        a = np.array([1, 1, 0, 0], bool)
-        b = np.array([1, 0, 1, 0], bool)
-        assert B.iou(a, b) == pytest.approx(1 / 3)
-        assert B.iou(a, a) == 1.0
-        assert B.iou(np.zeros(4, bool), np.zeros(4, bool)) == 1.0
