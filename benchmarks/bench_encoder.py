@@ -106,11 +106,16 @@ def main() -> None:
     size = args.size or CONFIG_INPUT
     parts = []
     for spec in args.seqs.split(","):
+        if spec == "bonn" and not BONN.is_dir():
+            print(f"skipped bonn: the Bonn clip is not at {BONN} (set DYNSLAM_SHARED)", flush=True)
+            continue
         path = BONN if spec == "bonn" else Path(spec)
         if not path.is_dir():
-            raise SystemExit(f"no sequence at {path} (the Bonn clip lives in ../shared; set DYNSLAM_SHARED)")
+            raise SystemExit(f"no sequence at {path}")
         parts.append(crops_of(path, args.step, size))
         print(f"{path.name}: {len(parts[-1])} crops", flush=True)
+    if not parts:
+        return
     x = np.concatenate(parts)
     if len(x) < 2 * args.batch:
         raise SystemExit(f"only {len(x)} crops: lower --step or --batch")
