@@ -1,9 +1,10 @@
 """The keyframe bundle-adjustment backend alone (no neural map) over RGB-D sequences.
 
 Prints one row per (sequence, static mask): ATE RMSE of the online poses, of the final
-trajectory (frames composed with their bundle-adjusted reference keyframes) and of that trajectory
-with its centres smoothed (as a run writes traj_est.txt: backend/smoothing.py) beside the ATE of a
-camera that never moves, frames lost, keyframes, median ms per frame for tracking and per keyframe
+trajectory (frames composed with their bundle-adjusted reference keyframes), of that trajectory with
+every frame but the keyframes solved again against the finished map (backend/refine.py) and of the
+latter with its centres smoothed (as a run writes traj_est.txt: backend/smoothing.py) beside the
+ATE of a camera that never moves, frames lost, keyframes, median ms per frame for tracking and per keyframe
 for bundle adjustment, landmarks at the end.
 
     .venv/bin/python benchmarks/bench_backend.py --seqs bonn --masks none,yolo
@@ -135,13 +136,15 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
     with tempfile.TemporaryDirectory() as tmp:
         ates = {}
         final = be.trajectory()
-        smoothed, _ = smooth_poses(seq.timestamps[:len(final)], final)  # as a run writes it
-        for name, poses in (("online", np.stack(online)), ("final", final), ("smoothed", smoothed)):
+        refined, _ = be.refined_trajectory()
+        smoothed, _ = smooth_poses(seq.timestamps[:len(refined)], refined)  # as a run writes it
+        for name, poses in (("online", np.stack(online)), ("final", final), ("refined", refined),
+                            ("smoothed", smoothed)):
             est = write_tum(Path(tmp) / f"{name}.txt", seq.stamps, poses)
             ates[name] = compute_ate(est, seq.groundtruth_file)
     return {"seq": path.name, "masks": masks, "frames": len(seq),
             "ate_cm": 100 * ates["online"].rmse_m, "ate_final_cm": 100 * ates["final"].rmse_m,
-            "ate_smoothed_cm": 100 * ates["smoothed"].rmse_m,
+            "ate_refined_cm": 100 * ates["refined"].rmse_m, "ate_smoothed_cm": 100 * ates["smoothed"].rmse_m,
             "max_cm": 100 * ates["final"].max_m, "still_cm": 100 * ates["final"].rmse_still_m,
             "lost": lost, "keyframes": len(be.kf_frame),
             "track_ms": float(np.median(track_ms)), "ba_ms": float(np.median(ba_ms)) if ba_ms else 0.0,
@@ -178,7 +181,8 @@ def main() -> None:
                     print("  lost", e, file=sys.stderr)
     noise = "the sequence's" if a.depth_noise is None else f"{a.depth_noise:g}"
     print(f"settings: {' '.join(a.set) or 'defaults'}, depth {a.depth}, depth noise {noise}")
-    cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "ate_smoothed_cm", "max_cm", "still_cm", "lost", "keyframes",
+    cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "ate_refined_cm", "ate_smoothed_cm", "max_cm", "still_cm",
+            "lost", "keyframes",
             "track_ms", "ba_ms", "ba_max_ms", "landmarks", "mask_ms")
     print(" | ".join(cols))
     for r in rows:

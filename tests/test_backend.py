@@ -124,6 +124,23 @@ def test_state_dict_round_trip_continues_identically():
     for a, b in zip(ref[5:], rest, strict=False):
         assert np.array_equal(a.pose_c2w, b.pose_c2w) and a.keyframe == b.keyframe and a.inliers == b.inliers
     assert np.array_equal(straight.trajectory(), resumed.trajectory())
+    # the frames' matches came through the checkpoint: the same refined trajectory
+    (ra, na), (rb, nb) = straight.refined_trajectory(), resumed.refined_trajectory()
+    assert na == nb > 0 and np.array_equal(ra, rb)
+
+
+def test_refined_trajectory_keeps_keyframes_and_moves_the_other_frames_little():
+    be = Backend(INTR, CFG)
+    _run(be, FRAMES)
+    raw = be.trajectory()
+    refined, n = be.refined_trajectory()
+    kf_rows = set(int(f) for f in be.kf_frame)  # rows are frame indices here
+    assert refined.shape == raw.shape and n == len(FRAMES) - len(kf_rows)
+    for i in range(len(FRAMES)):
+        if i in kf_rows:
+            assert np.array_equal(refined[i], raw[i])
+        else:  # solved again on the same matches: close to the truth, as the tracked pose was
+            assert np.linalg.norm(refined[i][:3, 3] - _camera(i)[:3, 3]) < 0.01, i
 
 
 @pytest.mark.parametrize("bad", ["features=0", "window=1"])

@@ -57,7 +57,8 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert np.array_equal(_traj(out / "traj_unsmoothed.txt"), traj)
     timing = json.loads((out / "timing.json").read_text())
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
-    assert set(timing["smoothing"]) == {"q_m2_s3", "noise_sd_m", "downweighted_frames"}
+    assert set(timing["smoothing"]) == {"q_m2_s3", "noise_sd_m", "downweighted_frames", "refined_frames"}
+    assert 0 <= timing["smoothing"]["refined_frames"] < 6  # frames solved again against the final map
     # calls: frames each part ran on (tracking every frame; mapping on frame 0 and every keyframe_every-th)
     assert timing["calls"]["track"] == 6 and timing["calls"]["frame"] == 6 and 1 <= timing["calls"]["map"] < 6
     assert isinstance(timing["peak_rss_mb"], float) and 0 < rss_before <= timing["peak_rss_mb"] <= _proc_status_mb("VmHWM")

@@ -30,6 +30,7 @@ from dynslam_cli.backend.features import Detector, Keypoints, backproject, on_de
 from dynslam_cli.backend.keyframes import LandmarkKeyframes, need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.motion import MotionFilter
+from dynslam_cli.backend.refine import FrameMatches, refine_poses
 from dynslam_cli.backend.tracking import Camera, pose_covariance, track_frame
 from dynslam_cli.geometry.camera import pixel_index
 
@@ -70,6 +71,7 @@ class Backend:
         self.first_pose = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64).copy()
         self.keyframes = LandmarkKeyframes() if keyframes is None else keyframes
         self.ref_kf = -1
+        self.matches = FrameMatches()  # each tracked frame's matches, for refined_trajectory
         self.last_pose: Optional[np.ndarray] = None
         self.prev_pose: Optional[np.ndarray] = None
         self.last_kf_index = -1
@@ -110,7 +112,7 @@ class Backend:
         self._pending = None
         self._last = None
         self._evidence = None
-        self.lm.compact()  # no landmark id is held outside the map now
+        self.matches.remap(self.lm.compact())  # the frames' matches are the only ids held outside the map
         kp = self.detector.detect(rgb, depth, static_mask)
         n_depth = int((kp.depth > 0).sum())
         if self.last_pose is None:
@@ -167,6 +169,7 @@ class Backend:
         self._advance(pose)
         reason = tr.reason + (f"; keyframe ({why})" if new_kf else "")
         out = self._out(pose, len(tr.lm), False, new_kf, reason, t0)
+        self.matches.set(len(self.frame_ref) - 1, tr.lm, kp.subset(tr.kp))  # for refined_trajectory
         if new_kf:
             self._pending = (int(index), pose.copy(), kp, tr.lm, tr.kp)
             if not defer:
@@ -207,6 +210,7 @@ class Backend:
             return None
         pose = self._fuse(tr, kp, redo=True)
         self.correct_last(pose)
+        self.matches.set(len(self.frame_ref) - 1, tr.lm, kp.subset(tr.kp))
         if self._pending is not None and self._pending[0] == index:
             self._pending = (index, pose.copy(), kp, tr.lm, tr.kp)
         return pose.copy()
@@ -237,6 +241,7 @@ class Backend:
                                         None if origin is None else origin[rows])
         kf = len(self.kf_frame) - 1
         self.frame_ref[-1] = kf  # the frame now stands on its own keyframe
+        self.matches.drop(len(self.frame_ref) - 1)  # its pose is bundle adjustment's
         self.frame_rel[-1] = np.eye(4)
         self.last_pose = refined.copy()
         return True, (time.perf_counter() - t1) * 1000, refined.copy()
@@ -259,6 +264,13 @@ class Backend:
         out[has] = self.kf_pose[self.frame_ref[has]] @ self.frame_rel[has]
         return out
 
+    def refined_trajectory(self) -> tuple[np.ndarray, int]:
+        """:meth:`trajectory` with every frame but the keyframes solved again against the finished
+        map (:func:`~dynslam_cli.backend.refine.refine_poses`), and how many frames moved."""
+        usable = self.lm.alive & ~self.lm.moving
+        return refine_poses(self.cam, self.trajectory(), self.matches, self.lm.pos, usable, self.cfg.min_matches,
+                            self.cfg.huber_px)
+
     def keyframe_poses(self) -> dict:
         """Frame index → the keyframe's current (bundle-adjusted) camera-to-world pose."""
         return {int(f): p.copy() for f, p in zip(self.kf_frame, self.kf_pose, strict=False)}
@@ -273,6 +285,7 @@ class Backend:
              "last_pose": nan if self.last_pose is None else self.last_pose.copy(),
              "prev_pose": nan if self.prev_pose is None else self.prev_pose.copy()}
         d.update({f"motion.{k}": v for k, v in self.motion.state_dict().items()})
+        d.update({f"matches.{k}": v for k, v in self.matches.state_dict().items()})
         return d
 
     def load_state_dict(self, d: dict) -> None:
@@ -288,6 +301,10 @@ class Backend:
         motion = {k[7:]: v for k, v in d.items() if k.startswith("motion.")}
         if motion:  # a checkpoint from before the motion model: it starts afresh
             self.motion.load_state_dict(motion)
+        matches = {k[8:]: v for k, v in d.items() if k.startswith("matches.")}
+        self.matches = FrameMatches()  # a checkpoint from before: only the frames after it are refined
+        if matches:
+            self.matches.load_state_dict(matches)
 
     # -- internals ---------------------------------------------------------------------------------
     def _fuse(self, tr, kp: Keypoints, redo: bool = False) -> np.ndarray:

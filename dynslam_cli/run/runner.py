@@ -321,14 +321,16 @@ class _Run:
         if cfg.mapping.final_iters > 0:
             _say(self.progress, f"final bundle adjustment ({cfg.mapping.final_iters} iterations)...")
         fin = slam.finish()  # mapping.final_iters of bundle adjustment (none by default)
-        traj, smoothing = slam.trajectory(), None
+        traj, refined = slam.final_trajectory()
+        smoothing = None
         if slam.backend is not None:  # the backend's centres, smoothed over the whole sequence; the raw ones beside
             from dynslam_cli.backend.smoothing import smooth_poses
 
             paths["traj_unsmoothed"] = write_tum(out / "traj_unsmoothed.txt", self.seq.stamps, traj)
             traj, sm = smooth_poses(self.seq.timestamps[:len(traj)], traj)
             smoothing = {"q_m2_s3": None if np.isnan(sm.q) else sm.q,  # None: too short or no noise, not smoothed
-                         "noise_sd_m": sm.noise_sd, "downweighted_frames": sm.downweighted}
+                         "noise_sd_m": sm.noise_sd, "downweighted_frames": sm.downweighted,
+                         "refined_frames": int(refined)}
         paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, traj)
         if cfg.run.mesh:
             _say(self.progress, f"extracting the mesh ({cfg.run.mesh_resolution} m voxels)...")

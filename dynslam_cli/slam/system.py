@@ -110,6 +110,15 @@ class SLAM(SlamState):
             out[i] = self.pose_of(i)
         return out
 
+    def final_trajectory(self) -> tuple[np.ndarray, int]:
+        """The trajectory to write once the sequence is finished: the backend's with every frame but
+        the keyframes solved again against the finished map (``Backend.refined_trajectory``), else
+        :meth:`trajectory`; and how many frames were solved again."""
+        if self.backend is None:
+            return self.trajectory(), 0
+        traj, n = self.backend.refined_trajectory()
+        return traj[:self.n_frames].copy(), n
+
     def render(self, pose_c2w: np.ndarray, scale: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
         """Depth (h×w, m; 0 = no surface) and colour (h×w×3 uint8) rendered at ``scale`` resolution
         without depth guidance (:func:`~dynslam_cli.slam.render.render_view`)."""
