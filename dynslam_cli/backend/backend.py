@@ -266,7 +266,7 @@ class Backend:
 
     def refined_trajectory(self) -> tuple[np.ndarray, int]:
         """:meth:`trajectory` with every frame but the keyframes solved again against the finished
-        map (:func:`~dynslam_cli.backend.refine.refine_poses`), and how many frames moved."""
+        map (:func:`~dynslam_cli.backend.refine.refine_poses`), and how many were solved again."""
         usable = self.lm.alive & ~self.lm.moving
         return refine_poses(self.cam, self.trajectory(), self.matches, self.lm.pos, usable, self.cfg.min_matches,
                             self.cfg.huber_px)
