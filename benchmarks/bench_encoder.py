@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/bench_encoder.py --seqs /data/synth/crowd_s0,bonn --step 10 --threads 2
 
 Cuts every ``--step``-th frame of each sequence into the geometric segmenter's segments and crops
-them as a run does (``motion.encoder_input_size`` 0: 160 px, grey fill), then encodes the crops
+them as a run does (``motion.encoder_input_size`` 0: 160 px; the run's margin and fill), then encodes the crops
 with EfficientNet-Lite0 as
 
 - ``onnx-fp32``: the run's encoder (onnxruntime, the cached export): the reference;
@@ -55,19 +55,19 @@ def crops_of(path: Path, step: int, size: int) -> np.ndarray:
     """Normalised encoder inputs (N×3×size×size float32) of the segments of every ``step``-th frame."""
     from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.data.open import open_sequence
-    from dynslam_cli.motion.encode_base import masked_crops, normalise_batch
+    from dynslam_cli.motion.encode_base import CROP_BACKGROUND, CROP_MARGIN, masked_crops, normalise_batch
     from dynslam_cli.motion.encode_effnet import MEAN, STD, crop_fill
     from dynslam_cli.motion.segment_geometric import GeometricSegmenter
 
     cfg = resolve_config(str(path))
     seq = open_sequence(str(path), cfg)
     seg = GeometricSegmenter.from_config(cfg.motion, seq.intrinsics)
-    fill = crop_fill(MEAN, "grey")
+    fill = crop_fill(MEAN, CROP_BACKGROUND)
     out = []
     for f in seq:
         if f.index % step:
             continue
-        c = masked_crops(f.rgb, seg.segment(f.rgb, f.depth).ids, size, 0.1, fill)
+        c = masked_crops(f.rgb, seg.segment(f.rgb, f.depth).ids, size, CROP_MARGIN, fill)
         if len(c):
             out.append(normalise_batch(c, MEAN, STD))
     return np.concatenate(out) if out else np.zeros((0, 3, size, size), np.float32)
