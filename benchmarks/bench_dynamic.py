@@ -10,6 +10,12 @@ dynamic-yolo (the yolo-seg segmenter with ../shared/models/yolov8n-seg_deq_fp32.
 
 Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete unless --fresh); prints a
 Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2 threads far slower there).
+
+``--repeats N`` runs every case N times in rounds (each round all modes in turn; rounds after the first go to
+<mode>-r<k>/), so that speed is compared within one stretch of time (the shared machine drifts by
+tens of per cent within an hour): the table gives the median over the rounds of fps and of each
+component's median ms, the ATE of the first round (with the range where the rounds differ), and
+each round's time per frame over static mode's of the same round.
 """
 
 from __future__ import annotations
@@ -70,6 +76,33 @@ def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> d
     return row
 
 
+def aggregate(rounds: list[dict]) -> dict:
+    """One case and mode over repeated rounds (``run_case`` rows): medians of the speed figures, the
+    first round's accuracy, and the ATE's range over the rounds."""
+    import statistics
+
+    first = dict(rounds[0])
+    for k in ("fps", "fps_after_first"):
+        first[k] = statistics.median(r[k] for r in rounds)
+    comps = set().union(*(r["median_ms"] for r in rounds))
+    first["median_ms"] = {c: statistics.median(r["median_ms"].get(c, 0.0) for r in rounds) for c in sorted(comps)}
+    ates = [r["ate_cm"] for r in rounds]
+    first["ate_range_cm"] = (min(ates), max(ates))
+    first["rounds"] = len(rounds)
+    return first
+
+
+def round_ratios(rounds: list[list[dict]], mode: str) -> list[float]:
+    """Per round, ``mode``'s overall time per frame (1 / fps) over static mode's in the same round
+    (rows of one case)."""
+    out = []
+    for rows in rounds:
+        by = {r["mode"]: r for r in rows}
+        if mode in by and "static" in by and by[mode]["fps"] > 0:
+            out.append(by["static"]["fps"] / by[mode]["fps"])
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="walker,crowd,kidnap,balloon,tracking")
@@ -84,7 +117,10 @@ def main() -> None:
     ap.add_argument("--data-root", default=str(Path(tempfile.gettempdir()) / "dynslam-bench-data"))
     ap.add_argument("--out", default=str(REPO / "results" / "bench" / "dynamic"))
     ap.add_argument("--fresh", action="store_true")
+    ap.add_argument("--repeats", type=int, default=1, help="rounds of every case (speed as medians over them)")
     a = ap.parse_args()
+    if a.repeats < 1:
+        ap.error("--repeats must be at least 1")
     w, h = (int(v) for v in a.size.lower().split("x"))
     base = [f"data.root={a.data_root}", f"run.threads={a.threads}"] + a.set
     cases = []
@@ -104,17 +140,25 @@ def main() -> None:
     for m in ("dynamic-yolo", "dynamic-yolo-person"):
         if m in modes and not YOLO.is_file():
             ap.error(f"mode {m} needs {YOLO}")
-    rows = []
+    rows, ratios = [], {}
     for spec, sets, name in cases:
-        for mode in modes:
-            rows.append(run_case(spec, mode, Path(a.out) / name / mode, sets, a.fresh))
+        rounds = []
+        for k in range(a.repeats):
+            rounds.append([run_case(spec, m, Path(a.out) / name / (m if k == 0 else f"{m}-r{k}"), sets, a.fresh)
+                           for m in modes])
+        rows += [aggregate([rr[i] for rr in rounds]) for i in range(len(modes))]
+        ratios.update({(spec, m): round_ratios(rounds, m) for m in modes if m != "static"})
     comps = ["segment", "encode", "track", "render", "check", "update", "map", "frame"]
+    if a.repeats > 1:
+        print(f"speed: medians over {a.repeats} rounds; ATE: the first round's (range where rounds differ)")
     print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | " + " | ".join(comps) + " |")
     print("|---" * (8 + len(comps)) + "|")
     for r in rows:
         iou = f"{r['iou']:.3f}" if isinstance(r["iou"], float) else "—"
         ms = " | ".join(f"{r['median_ms'].get(c, float('nan')):.0f}" if c in r["median_ms"] else "—" for c in comps)
-        print(f"| {r['case']} | {r['mode']} | {r['ate_cm']:.2f} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
+        lo, hi = r["ate_range_cm"]
+        ate = f"{r['ate_cm']:.2f}" + (f" ({lo:.2f}–{hi:.2f})" if hi - lo >= 0.005 else "")
+        print(f"| {r['case']} | {r['mode']} | {ate} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
               f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {ms} |")
     # the overhead of each dynamic variant over static mode on the same case (median ms per frame)
     static = {r["case"]: r for r in rows if r["mode"] == "static"}
@@ -122,8 +166,11 @@ def main() -> None:
         st = static.get(r["case"])
         if st is not None and r["mode"] != "static" and "frame" in r["median_ms"] and "frame" in st["median_ms"]:
             d, s0 = r["median_ms"]["frame"], st["median_ms"]["frame"]
-            print(f"overhead of {r['mode']} over static on {r['case']}: {d:.0f} vs {s0:.0f} ms per frame "
-                  f"(x{d / max(s0, 1e-9):.2f}); fps {r['fps']:.2f} vs {st['fps']:.2f}")
+            per_round = ratios.get((r["case"], r["mode"]), [])
+            each = f" (per round x{', x'.join(f'{v:.2f}' for v in per_round)})" if len(per_round) > 1 else ""
+            print(f"overhead of {r['mode']} over static on {r['case']}: median frame {d:.0f} vs {s0:.0f} ms "
+                  f"(x{d / max(s0, 1e-9):.2f}); overall time per frame x{st['fps'] / max(r['fps'], 1e-9):.2f}{each}; "
+                  f"fps {r['fps']:.2f} vs {st['fps']:.2f}")
 
 
 if __name__ == "__main__":
