@@ -293,7 +293,8 @@ class _Run:
                 self.timings[k].append(float(step[k]))
             done = i + 1
             if self.progress:
-                post = {"loss": f"{step['_loss']:.3f}"}
+                # the dense tracking's loss; the backend's tracking has none (NaN): not shown
+                post = {"loss": f"{step['_loss']:.3f}"} if np.isfinite(step["_loss"]) else {}
                 if self.loop.mm is not None:
                     post.update(dyn=step["_dynamic"], updates=len(self.loop.records))
                 if self.bar is None:
