@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -79,8 +80,6 @@ def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> d
 def aggregate(rounds: list[dict]) -> dict:
     """One case and mode over repeated rounds (``run_case`` rows): medians of the speed figures, the
     first round's accuracy, and the ATE's range over the rounds."""
-    import statistics
-
     first = dict(rounds[0])
     for k in ("fps", "fps_after_first"):
         first[k] = statistics.median(r[k] for r in rounds)
@@ -160,7 +159,7 @@ def main() -> None:
         ate = f"{r['ate_cm']:.2f}" + (f" ({lo:.2f}–{hi:.2f})" if hi - lo >= 0.005 else "")
         print(f"| {r['case']} | {r['mode']} | {ate} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
               f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {ms} |")
-    # the overhead of each dynamic variant over static mode on the same case (median ms per frame)
+    # the overhead of each dynamic variant over static mode on the same case (median frame; overall time per frame)
     static = {r["case"]: r for r in rows if r["mode"] == "static"}
     for r in rows:
         st = static.get(r["case"])
