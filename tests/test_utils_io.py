@@ -104,3 +104,19 @@ def test_uncreatable_folder_and_temp(tmp_path: Path, monkeypatch):
         io.write_text_atomic(tmp_path / "ro.txt", "x")
     assert info.value.filename == str(tmp_path / "ro.txt")
     assert blocker.read_text() == "keep" and [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
+class TestProcStatus:
+    @pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="no /proc (not Linux)")
+    def test_known_lines_and_a_missing_one(self):
+        rss = int(io.proc_status("VmRSS"))  # kB now; the peak read after it holds it
+        assert int(io.proc_status("VmHWM")) >= rss > 0
+        assert int(io.proc_status("Umask"), 8) == io.current_umask()
+        assert io.proc_status("NoSuchLine") is None
+
+    def test_without_proc(self, monkeypatch):
+        def no_file(*a, **k):
+            raise FileNotFoundError("/proc/self/status")
+
+        monkeypatch.setattr("builtins.open", no_file)
+        assert io.proc_status("VmHWM") is None

@@ -31,7 +31,7 @@ import numpy as np
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.run import checkpoint
 from dynslam_cli.run.folder import FolderLock, claim_folder, read_status
-from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
+from dynslam_cli.utils.io import atomic_path, proc_status, write_json_atomic, write_text_atomic
 from dynslam_cli.utils.threads import seed_everything, set_threads
 
 MODES = ("static", "dynamic")
@@ -146,7 +146,12 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
 
 
 def peak_rss_mb() -> float:
-    """The process's peak resident memory so far (MiB; ru_maxrss is KiB on Linux, bytes on macOS)."""
+    """The process's peak resident memory so far (MiB): Linux's VmHWM (the kernel's high-water mark
+    brought up to the resident set now; ru_maxrss alone can lag it by a few pages), else ru_maxrss
+    (KiB on Linux, bytes on macOS)."""
+    hwm = proc_status("VmHWM")
+    if hwm is not None and hwm.isdigit():
+        return int(hwm) / 1024.0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (2.0 ** 20 if sys.platform == "darwin" else 1024.0)
 

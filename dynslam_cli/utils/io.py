@@ -21,15 +21,25 @@ from typing import Any, Iterator
 _UMASK_LOCK = threading.Lock()
 
 
-def current_umask() -> int:
-    """The process umask, read without changing it where the system allows (Linux /proc)."""
+def proc_status(key: str) -> str | None:
+    """The first word of line ``key`` of Linux's /proc/self/status (e.g. ``Umask``, ``VmHWM`` in kB);
+    None where there is no such file or line."""
     try:
         with open("/proc/self/status", encoding="ascii", errors="replace") as f:
             for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
+                if line.startswith(key + ":"):
+                    return line.split()[1]
+    except (OSError, IndexError):
         pass
+    return None
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux /proc)."""
+    text = proc_status("Umask")
+    if text is not None:
+        with contextlib.suppress(ValueError):
+            return int(text, 8)
     with _UMASK_LOCK:  # os.umask can only be read by setting it: set it straight back
         mask = os.umask(0o022)
         os.umask(mask)
