@@ -306,3 +306,35 @@ def test_a_place_seen_again_is_tracked_against_its_old_landmarks(monkeypatch):
     monkeypatch.setattr(LandmarkKeyframes, "in_view", lambda self, *a, **k: [])
     old, err = run()
     assert old < 50 and err > 0.04  # covisibility alone does not reach them: the way back drifts
+
+
+def test_reprojection_evidence_leaves_out_landmarks_of_a_place_seen_again(monkeypatch):
+    """Back near the start of an out-and-back path, tracking matches the first keyframes'
+    landmarks again (LandmarkKeyframes.in_view); the drift gathered on the way is theirs all
+    together, so they are no evidence that anything moved: the evidence keeps only the matches of
+    landmarks the covisible window observed.  Frames that match no such keyframe keep them all."""
+    def cam(i):
+        T = np.eye(4)
+        T[0, 3] = 0.4 * (1 - np.cos(np.pi * i / 40))
+        return T
+
+    cfg = BackendConfig(features=400, window=2)
+    cfg.KEYFRAME_MAX_GAP = 4
+    calls = []
+    in_view = LandmarkKeyframes.in_view
+    monkeypatch.setattr(LandmarkKeyframes, "in_view",
+                        lambda self, *a, **k: calls.append(in_view(self, *a, **k)) or calls[-1])
+    be = Backend(INTR, cfg)
+    seen_again, plain = [], []
+    for i in range(81):
+        out = be.track(i, *_render(cam(i)))
+        assert not out.lost
+        if i == 0:
+            continue
+        in_window = be._evidence[3]  # per match: a landmark of the covisible window
+        uv, ok = be.reprojection_evidence()
+        assert len(ok) <= int(in_window.sum())
+        (seen_again if calls[-1] else plain).append((int(in_window.sum()), len(in_window), len(ok)))
+    assert plain and all(n == m for n, m, _ in plain)  # on the way out every match counts
+    assert seen_again and any(n < m for n, m, _ in seen_again)  # back at the start the old landmarks do not
+    assert all(k >= 20 for _, _, k in seen_again)  # the window's own matches still do

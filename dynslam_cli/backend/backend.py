@@ -131,11 +131,11 @@ class Backend:
                 self.commit()
             return out
         guess = self.motion.predict(self.last_pose, stamp)
-        local = self._local_keyframes(2 * self.cfg.window)
+        window = self._local_keyframes(2 * self.cfg.window)
         # and the keyframes of a place seen before that the guess looks at again (not covisible with the newer ones)
-        local += self.keyframes.in_view(guess, self.cam.K, self.cam.width, self.cam.height, self.cfg.window,
-                                        self.cfg.min_matches, exclude=local)
-        ids = self.lm.seen_by(local)
+        again = self.keyframes.in_view(guess, self.cam.K, self.cam.width, self.cam.height, self.cfg.window,
+                                       self.cfg.min_matches, exclude=window)
+        ids = self.lm.seen_by(window + again)
         tr = track_frame(self.cam, guess, kp, ids, self.lm.pos[ids], self.lm.des[ids],
                          lambda rows, dist: self.lm.expected_scale(ids[rows], dist), self.cfg.SEARCH_PX,
                          self.cfg.huber_px, self.cfg.min_matches, seed=index)
@@ -153,7 +153,8 @@ class Backend:
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
-        self._evidence = (kp.subset(tr.matched), tr.reprojects, depth)  # judged on demand: reprojection_evidence
+        in_window = np.isin(tr.matched_lm, self.lm.seen_by(window)) if again else np.ones(len(tr.matched_lm), bool)
+        self._evidence = (kp.subset(tr.matched), tr.reprojects, depth, in_window)  # judged on demand
         pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
@@ -178,17 +179,20 @@ class Backend:
         return out
 
     def reprojection_evidence(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
-        """The last tracked frame's matched keypoints (N×2 pixels; those on occluding contours left
-        out: :func:`~dynslam_cli.backend.features.on_depth_discontinuity`) and whether each
-        reprojects at its tracked pose (:func:`~dynslam_cli.backend.tracking.reprojects`); None
-        where the frame was not tracked against the local map (the first frame, a lost frame).
-        Computed when asked (static mode never asks)."""
+        """The last tracked frame's matched keypoints (N×2 pixels) and whether each reprojects at its
+        tracked pose (:func:`~dynslam_cli.backend.tracking.reprojects`); None where the frame was
+        not tracked against the local map (the first frame, a lost frame).  Left out: keypoints on
+        occluding contours (:func:`~dynslam_cli.backend.features.on_depth_discontinuity`: their
+        corners slide as the camera moves) and matches to landmarks that only the keyframes of a
+        place seen again observed (``LandmarkKeyframes.in_view``, none of the covisible window): the
+        drift the camera gathered since it was there moves them off their keypoints all together,
+        without anything having moved.  Computed when asked (static mode never asks)."""
         if self._evidence is None:
             return None
-        matched, ok, depth = self._evidence
+        matched, ok, depth, in_window = self._evidence
         v, u = pixel_index(matched.uv, *np.shape(depth))
-        surface = ~on_depth_discontinuity(depth, v, u, matched.octave)  # contour corners slide as the camera moves
-        return matched.uv[surface], ok[surface]
+        keep = ~on_depth_discontinuity(depth, v, u, matched.octave) & in_window
+        return matched.uv[keep], ok[keep]
 
     def retrack(self, static_mask: np.ndarray) -> Optional[np.ndarray]:
         """Track the last frame again from the same prediction on the keypoints that ``static_mask``

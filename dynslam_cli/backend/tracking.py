@@ -222,8 +222,9 @@ class FrameTrack:
     """What tracking one frame found: ``pose`` (camera-to-world), the matched landmark ids and
     keypoint rows that are inliers, the landmark ids that projected into the frame, ``lost``,
     ``reason`` (motion | wide | relocalised | lost: ...); ``matched`` (keypoint rows of every match
-    of the search around the motion model's guess, inliers or not) and ``reprojects`` (whether each
-    reprojects at ``pose`` within the 95 % gate of its pixel noise: :func:`reprojects`)."""
+    of the search around the motion model's guess, inliers or not), ``matched_lm`` (their landmark
+    ids) and ``reprojects`` (whether each reprojects at ``pose`` within the 95 % gate of its pixel
+    noise: :func:`reprojects`)."""
 
     pose: np.ndarray
     lm: np.ndarray
@@ -233,6 +234,7 @@ class FrameTrack:
     reason: str
     matched: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     reprojects: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    matched_lm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def reprojects(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints) -> np.ndarray:
@@ -282,4 +284,5 @@ def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, 
         return FrameTrack(guess.copy(), a[:0], b[:0], np.zeros(0, np.int64), True,
                           f"lost: {len(a)} static inliers (< {min_matches}) after {reason} tracking")
     a_all, b_all = matches
-    return FrameTrack(T, ids[a], b, ids[vis], False, reason, b_all, reprojects(cam, T, X[a_all], kp.subset(b_all)))
+    return FrameTrack(T, ids[a], b, ids[vis], False, reason, b_all, reprojects(cam, T, X[a_all], kp.subset(b_all)),
+                      ids[a_all])
