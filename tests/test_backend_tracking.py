@@ -174,3 +174,30 @@ class TestReprojects:
         assert not tr.lost and len(tr.matched) == len(tr.reprojects) >= 240
         fails = set(tr.matched[~tr.reprojects].tolist())
         assert fails >= set(moved.tolist()) and len(fails - set(moved.tolist())) <= 12
+
+
+class TestReprojectsWithin:
+    def test_part_judged_at_its_own_pose(self):
+        from dynslam_cli.backend.tracking import reprojects, reprojects_within
+
+        truth, X, kp, _ = _scene(300, seed=7)
+        old = np.arange(300) >= 200  # a third of the landmarks drifted 6 cm from the rest
+        X = X.copy()
+        X[old] += [0.06, 0.0, 0.0]
+        between, _ = optimize_pose(CAM, truth, X, kp, huber=1e6, rounds=1)  # a pose pulled between the two
+        part = ~old
+        at_pose = reprojects(CAM, between, X, kp)
+        within = reprojects_within(CAM, between, X, kp, part, 2.8, 20)
+        assert at_pose[part].mean() < 0.7  # judged at the pulled pose, many of the part fail
+        assert within[part].mean() > 0.9 and not within[old].any()  # at its own pose they reproject
+
+    def test_too_few_in_the_part_judged_at_the_given_pose(self):
+        from dynslam_cli.backend.tracking import reprojects, reprojects_within
+
+        truth, X, kp, _ = _scene(100, seed=8)
+        part = np.zeros(100, bool)
+        part[:10] = True
+        T = truth @ _pose(0.0, 0.0, [0.01, 0.0, 0.0])
+        within = reprojects_within(CAM, T, X, kp, part, 2.8, 20)
+        assert within[:10].tolist() == reprojects(CAM, T, X[:10], kp.subset(np.arange(10))).tolist()
+        assert not within[10:].any()

@@ -31,7 +31,7 @@ from dynslam_cli.backend.keyframes import LandmarkKeyframes, need_keyframe
 from dynslam_cli.backend.landmarks import LandmarkMap
 from dynslam_cli.backend.motion import MotionFilter
 from dynslam_cli.backend.refine import FrameMatches, refine_poses
-from dynslam_cli.backend.tracking import Camera, pose_covariance, track_frame
+from dynslam_cli.backend.tracking import Camera, pose_covariance, reprojects_within, track_frame
 from dynslam_cli.geometry.camera import pixel_index
 
 
@@ -153,8 +153,12 @@ class Backend:
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
-        in_window = np.isin(tr.matched_lm, self.lm.seen_by(window)) if again else np.ones(len(tr.matched_lm), bool)
-        self._evidence = (kp.subset(tr.matched), tr.reprojects, depth, in_window)  # judged on demand
+        in_window, ok = np.ones(len(tr.matched_lm), bool), tr.reprojects
+        if again:  # the window's matches judged at the pose they alone give (the old landmarks drifted)
+            in_window = np.isin(tr.matched_lm, self.lm.seen_by(window))
+            ok = reprojects_within(self.cam, tr.pose, self.lm.pos[tr.matched_lm], kp.subset(tr.matched), in_window,
+                                   self.cfg.huber_px, self.cfg.min_matches)
+        self._evidence = (kp.subset(tr.matched), ok, depth, in_window)  # judged on demand
         pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
@@ -186,7 +190,9 @@ class Backend:
         corners slide as the camera moves) and matches to landmarks that only the keyframes of a
         place seen again observed (``LandmarkKeyframes.in_view``, none of the covisible window): the
         drift the camera gathered since it was there moves them off their keypoints all together,
-        without anything having moved.  Computed when asked (static mode never asks)."""
+        without anything having moved; the tracked pose, pulled between the two, is not the
+        window's either, so then the window's matches are judged at the pose they alone give
+        (:func:`~dynslam_cli.backend.tracking.reprojects_within`).  Judged when asked (static mode never asks)."""
         if self._evidence is None:
             return None
         matched, ok, depth, in_window = self._evidence

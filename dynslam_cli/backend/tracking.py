@@ -246,6 +246,22 @@ def reprojects(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints) -> 
     return (z > 1e-6) & (e2 <= CHI2_MONO)
 
 
+def reprojects_within(cam: Camera, T_c2w: np.ndarray, X: np.ndarray, kp: Keypoints, part: np.ndarray,
+                      huber: float, min_matches: int) -> np.ndarray:
+    """:func:`reprojects` of the matches ``part`` (bool over them) at the pose solved on those
+    alone (robust, from ``T_c2w``): where the rest of the map disagrees with that part (drift),
+    a match of it is judged against the part it belongs to.  Fewer than ``min_matches`` in it:
+    judged at ``T_c2w``.  The others: False."""
+    out = np.zeros(len(X), bool)
+    rows = np.flatnonzero(part)
+    T = T_c2w
+    if len(rows) >= min_matches:
+        T, inl = optimize_pose(cam, T_c2w, X[rows], kp.subset(rows), huber)
+        T = T if int(inl.sum()) >= min_matches and np.all(np.isfinite(T)) else T_c2w
+    out[rows] = reprojects(cam, T, X[rows], kp.subset(rows))
+    return out
+
+
 def track_frame(cam: Camera, guess: np.ndarray, kp: Keypoints, ids: np.ndarray, X: np.ndarray, des: np.ndarray,
                 scale_fn, search_px: float, huber: float, min_matches: int, seed: int) -> FrameTrack:
     """Track keypoints ``kp`` against the local map (landmark ``ids``, positions ``X``,
