@@ -153,12 +153,9 @@ class Backend:
             return self._out(guess, 0, True, False, tr.reason, t0)
         self.lost_run = 0
         self._last = (int(index), guess, kp, ids)
-        in_window, ok = np.ones(len(tr.matched_lm), bool), tr.reprojects
-        if again:  # the window's matches judged at the pose they alone give (the old landmarks drifted)
-            in_window = np.isin(tr.matched_lm, self.lm.seen_by(window))
-            ok = reprojects_within(self.cam, tr.pose, self.lm.pos[tr.matched_lm], kp.subset(tr.matched), in_window,
-                                   self.cfg.huber_px, self.cfg.min_matches)
-        self._evidence = (kp.subset(tr.matched), ok, depth, in_window)  # judged on demand
+        in_window = np.isin(tr.matched_lm, self.lm.seen_by(window)) if again else np.ones(len(tr.matched_lm), bool)
+        X = self.lm.pos[tr.matched_lm] if again else None  # where the matched landmarks were, for the window's pose
+        self._evidence = (kp.subset(tr.matched), tr.reprojects, depth, in_window, tr.pose, X)  # judged on demand
         pose = self._fuse(tr, kp)
         self.lm.count(tr.visible, tr.lm)
         self.ref_kf = int(self.lm.covisible(tr.lm)[0][0])
@@ -192,10 +189,12 @@ class Backend:
         drift the camera gathered since it was there moves them off their keypoints all together,
         without anything having moved; the tracked pose, pulled between the two, is not the
         window's either, so then the window's matches are judged at the pose they alone give
-        (:func:`~dynslam_cli.backend.tracking.reprojects_within`).  Judged when asked (static mode never asks)."""
+        (:func:`~dynslam_cli.backend.tracking.reprojects_within`).  Computed when asked (static mode never asks)."""
         if self._evidence is None:
             return None
-        matched, ok, depth, in_window = self._evidence
+        matched, ok, depth, in_window, pose, X = self._evidence
+        if X is not None:  # a place seen again: the window's matches at the pose they alone give
+            ok = reprojects_within(self.cam, pose, X, matched, in_window, self.cfg.huber_px, self.cfg.min_matches)
         v, u = pixel_index(matched.uv, *np.shape(depth))
         keep = ~on_depth_discontinuity(depth, v, u, matched.octave) & in_window
         return matched.uv[keep], ok[keep]
