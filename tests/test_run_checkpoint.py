@@ -37,6 +37,12 @@ class TestIdentityMismatch:
         assert checkpoint.identity_mismatch(_identity(), _identity(code="0.2.0")) == \
             "code version differs (old 0.1.0, new 0.2.0)"
 
+    def test_device_kind(self):
+        # a checkpoint written before the device was recorded ran on the CPU
+        assert checkpoint.identity_mismatch(_identity(), _identity(device="cpu")) is None
+        msg = checkpoint.identity_mismatch(_identity(device="cuda"), _identity(device="cpu"))
+        assert msg == "device differs (the checkpoint ran on cuda, this run would use cpu: pass --device cuda)"
+
 
 class TestResumeState:
     def test_unreadable_file(self, tmp_path):

@@ -5,6 +5,7 @@ import pytest
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
+from dynslam_cli.run.runner import select_device
 from dynslam_cli.slam.toyscene import write_sequence
 
 TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
@@ -43,7 +44,7 @@ def test_run_writes_the_run_folder(clip, tmp_path):
         assert (out / name).is_file(), name
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "completed" and meta["mode"] == "static" and meta["frames"] == 6
-    assert meta["sequence"]["groundtruth"].endswith("groundtruth.txt") and meta["device"] == "cpu"
+    assert meta["sequence"]["groundtruth"].endswith("groundtruth.txt") and meta["device"] == str(select_device("auto"))
     # the numba layer the kernels really ran on, not the one asked for before any kernel ran
     assert meta["versions"]["numba_threading_layer"] in ("workqueue", "omp", "tbb")
     for lib in ("opencv", "onnxruntime", "gtsam", "scipy", "cpu"):  # what else a trajectory depends on

@@ -64,12 +64,14 @@ def flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
-def run_identity(spec: str, seq, cfg) -> dict:
-    """What a checkpoint belongs to: the sequence, the flattened resolved config, the code version."""
+def run_identity(spec: str, seq, cfg, device: str = "cpu") -> dict:
+    """What a checkpoint belongs to: the sequence, the flattened resolved config, the code version and
+    the kind of device it ran on (``run.device: auto`` resolves differently between machines, and a
+    random generator's state belongs to its device)."""
     from dynslam_cli.config.loader import config_to_dict
 
     return {"sequence": sequence_identity(spec, seq), "config": flatten(config_to_dict(cfg)),
-            "code": code_version()}
+            "code": code_version(), "device": device}
 
 
 # Keys that say when a run stops or saves and where files live, not what it computes: free on --resume.
@@ -102,6 +104,9 @@ def identity_mismatch(old: dict, new: dict) -> Optional[str]:
         return f"config key {k} differs (old {_show(co.get(k, _ABSENT))}, new {_show(cn.get(k, _ABSENT))}){more}"
     if old.get("code") != new["code"]:
         return f"code version differs (old {old.get('code')}, new {new['code']})"
+    if old.get("device", "cpu") != new.get("device", "cpu"):
+        return (f"device differs (the checkpoint ran on {old.get('device', 'cpu')}, this run would use "
+                f"{new.get('device', 'cpu')}: pass --device {old.get('device', 'cpu')})")
     return None
 
 

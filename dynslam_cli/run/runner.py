@@ -66,7 +66,8 @@ def select_device(name: str):
     raise DynslamError(f"unknown device '{name}': use auto, cpu or cuda")
 
 
-def versions() -> dict:
+def versions(device=None) -> dict:
+    """Library versions, the CPU's model and, on a CUDA device, the GPU's name and CUDA's version."""
     import torch
 
     out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__}
@@ -91,6 +92,9 @@ def versions() -> dict:
             except importlib.metadata.PackageNotFoundError:
                 continue
     out["cpu"] = cpu_model()
+    if device is not None and device.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(device)
+        out["cuda"] = torch.version.cuda
     return out
 
 
@@ -182,7 +186,7 @@ def run_sequence(spec: str, cfg, out_dir: Optional[Path] = None, resume: bool = 
     if len(seq) == 0:
         raise DynslamError(f"sequence {spec} has no frames (after start/frames/stride)")
     out = Path(out_dir) if out_dir is not None else default_out_dir(cfg, seq.dataset, seq.name, mode)
-    identity = checkpoint.run_identity(spec, seq, cfg)
+    identity = checkpoint.run_identity(spec, seq, cfg, device.type)
     with FolderLock(out):
         claim_folder(out, resume=resume, overwrite=overwrite)  # refuses before anything is written
         state = checkpoint.resume_state(out / "checkpoint.pt", identity) if resume else None
@@ -206,7 +210,7 @@ class _Run:
                          else str(Path(seq.groundtruth_file).resolve()),
                          "frames_sha256": identity["sequence"]["frames_sha256"], "depth_noise": seq.depth_noise},
             "mode": cfg.run.mode, "variant": cfg.run.mode, "frames": self.n, "device": str(device),
-            "seed": int(cfg.run.seed), "threads": threads, "versions": versions(), "started": _now(),
+            "seed": int(cfg.run.seed), "threads": threads, "versions": versions(device), "started": _now(),
             "finished": None, "error": None,
         }
         self.slam = self.loop = self.bar = None
@@ -232,7 +236,7 @@ class _Run:
             fps, paths = self._finish()
             # last: run.json says completed only once every other file is written
             # the threading layer numba really used is known only once a parallel kernel has run
-            self.meta.update(status="completed", finished=_now(), frames=self.n, versions=versions())
+            self.meta.update(status="completed", finished=_now(), frames=self.n, versions=versions(self.device))
             write_json_atomic(self.run_json, self.meta)
             return RunResult("completed", self.out, self.n, fps, paths)
         except BaseException as exc:
@@ -358,6 +362,10 @@ class _Run:
             "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
             "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
         }
+        if self.device.type == "cuda":  # what torch's allocator held at most on the GPU
+            import torch
+
+            timing["peak_gpu_mb"] = torch.cuda.max_memory_allocated(self.device) / 2.0 ** 20
         if smoothing is not None:
             timing["smoothing"] = smoothing
         if loop.mm is not None:
