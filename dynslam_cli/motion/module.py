@@ -84,10 +84,10 @@ class MotionModule:
         m = self.m
         run = getattr(cfg, "run", None)  # run.seed / run.threads (a bare MotionConfig: 0 / onnxruntime's default)
         seed, threads = (int(run.seed), int(run.threads)) if run is not None else (0, 0)
-        self.segmenter = make_segmenter(m, intrinsics, threads)
+        self.segmenter = make_segmenter(m, intrinsics, threads, self.device.type)
         self.rendered_segmenter = GeometricSegmenter.from_config(m, intrinsics)
         self.rendered_segmenter.min_instance_area = 4
-        self.encoder = make_encoder(m, threads)
+        self.encoder = make_encoder(m, threads, self.device.type)
         self.in_dim = int(self.encoder.dim) + (3 if m.centre_feature else 0)
         self.classifier = MotionClassifier(self.in_dim, HIDDEN, LR, UPDATE_STEPS, MIN_UPDATE_STEPS, seed, self.device)
         self.replay = ReplayBuffer(self.in_dim, REPLAY_CAPACITY, seed)

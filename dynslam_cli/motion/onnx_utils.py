@@ -26,8 +26,9 @@ def require_model(path: str, what: str, how: str) -> Path:
     return p
 
 
-def ort_session(path: str | Path, threads: int = 0):
-    """An onnxruntime CPU (or CUDA when available) session; a corrupt file is a DynslamError."""
+def ort_session(path: str | Path, threads: int = 0, device: str = "cpu"):
+    """An onnxruntime session on the CPU, or on CUDA where ``device`` is ``cuda`` and this onnxruntime has
+    its CUDA provider (the ``onnxruntime-gpu`` package); a corrupt file is a DynslamError."""
     try:
         import onnxruntime as ort
     except ImportError as exc:  # pragma: no cover - onnxruntime is a dependency
@@ -37,7 +38,8 @@ def ort_session(path: str | Path, threads: int = 0):
     if threads > 0:
         so.intra_op_num_threads = threads
         so.inter_op_num_threads = 1
-    providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
+    wanted = ("CUDAExecutionProvider", "CPUExecutionProvider") if device == "cuda" else ("CPUExecutionProvider",)
+    providers = [p for p in wanted if p in ort.get_available_providers()]
     try:
         return ort.InferenceSession(str(path), sess_options=so, providers=providers)
     except Exception as exc:  # onnxruntime raises its own exception types

@@ -179,9 +179,9 @@ class YoloSegSegmenter:
 
     def __init__(self, model_path: str, conf: float = 0.25, iou: float = 0.7, imgsz: int = IMGSZ,
                  prune_ratio: float = PRUNE_RATIO, min_area: int = MIN_INSTANCE_AREA, max_det: int = 100,
-                 threads: int = 0):
+                 threads: int = 0, device: str = "cpu"):
         path = require_model(model_path, "yolo-seg segmenter (motion.segmenter_model)", FASTSAM_RECIPE)
-        self.session = ort_session(path, threads)
+        self.session = ort_session(path, threads, device)
         self.path = path
         check_outputs(self.session, path)
         inp = self.session.get_inputs()[0]
@@ -199,8 +199,9 @@ class YoloSegSegmenter:
             self.names = {}
 
     @classmethod
-    def from_config(cls, mcfg, threads: int = 0) -> "YoloSegSegmenter":
-        return cls(mcfg.segmenter_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou, threads=threads)
+    def from_config(cls, mcfg, threads: int = 0, device: str = "cpu") -> "YoloSegSegmenter":
+        return cls(mcfg.segmenter_model, conf=mcfg.segmenter_conf, iou=mcfg.segmenter_iou, threads=threads,
+                   device=device)
 
     def detect(self, rgb: np.ndarray):
         """Boxes, scores, classes and full-resolution masks before pruning."""

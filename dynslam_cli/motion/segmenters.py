@@ -6,7 +6,7 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.segment_base import Segmenter
 
 
-def make_segmenter(mcfg, intrinsics=None, threads: int = 0) -> Segmenter:
+def make_segmenter(mcfg, intrinsics=None, threads: int = 0, device: str = "cpu") -> Segmenter:
     """The segmenter named by ``motion.segmenter`` (geometric | yolo-seg | fastsam); ``threads``: onnxruntime
     intra-op threads (run.threads; 0 = its default)."""
     name = mcfg.segmenter
@@ -17,5 +17,5 @@ def make_segmenter(mcfg, intrinsics=None, threads: int = 0) -> Segmenter:
     if name in ("yolo-seg", "fastsam"):
         from dynslam_cli.motion.segment_yolo import YoloSegSegmenter
 
-        return YoloSegSegmenter.from_config(mcfg, threads)
+        return YoloSegSegmenter.from_config(mcfg, threads, device)
     raise DynslamError(f"unknown motion.segmenter '{name}'; valid: geometric, yolo-seg, fastsam")

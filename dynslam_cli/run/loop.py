@@ -40,8 +40,10 @@ CHECK_WARMUP = 5
 RETRACK_FRACTION = 0.02
 
 
-# What process() times, per frame (ms); the motion module's parts are 0 in static mode.
-TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", "map", "frame")
+# What process() times, per frame (ms); the motion module's parts are 0 in static mode. "judge": what decides
+# beside the classifier's check (the checkable region, stayed put, the backend's vote, forgetting departed
+# things); "keyframes": re-masking the stored keyframes after an update and tagging a new keyframe's instances.
+TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", "judge", "keyframes", "map", "frame")
 
 
 class FrameLoop:
@@ -77,7 +79,7 @@ class FrameLoop:
         static = None if inst is None else inst.static_mask
         tr = self.slam.track(frame, static)
         t_track = tr.ms
-        t_render = 0.0
+        t_render = t_judge = t_keyframes = 0.0
         record = None
         retracked = False
         if inst is not None and self.slam.n_frames > max(1, CHECK_WARMUP):  # a one-frame map judges nothing
@@ -86,6 +88,7 @@ class FrameLoop:
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
             raw_depth = r_depth
             t_render = (time.perf_counter() - t1) * 1e3
+            t1 = time.perf_counter()
             judged_depth, forward_ok = checkable_depth(frame.depth, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
                                                        self.mm.m.depth_threshold,
                                                        border=self.slam.cfg.tracking.ignore_border)
@@ -98,9 +101,12 @@ class FrameLoop:
                                self.mm.m.depth_threshold, bool(self.mm.m.centre_feature))
             evidence = self.slam.reprojection_evidence()
             moved = None if evidence is None else moving_by_reprojection(inst.ids, *evidence, inst.count)
+            t_judge = (time.perf_counter() - t1) * 1e3
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still, moved)
+            t1 = time.perf_counter()
             forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w, self.slam.keyframes,
                             self.slam.intr, self.mm.m.depth_threshold, self.forget_radius)
+            t_judge += (time.perf_counter() - t1) * 1e3
             if record is not None and RETRACK_FRACTION > 0:
                 valid = np.asarray(frame.depth) > 0
                 newly = int((before & ~inst.static_mask & valid).sum())
@@ -115,7 +121,9 @@ class FrameLoop:
         if record is not None:
             rec = record.to_json()
             rec["timestamp"] = stamp
+            t1 = time.perf_counter()
             masked = refresh_keyframes(self.slam.keyframes, self.mm)
+            t_keyframes = (time.perf_counter() - t1) * 1e3
             rec["keyframe_rays_masked"] = masked
             rec["retracked"] = retracked
             self.records.append(rec)
@@ -124,6 +132,7 @@ class FrameLoop:
         if inst is None:
             return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,
                     "frame": (time.perf_counter() - t0) * 1e3, "_loss": tr.loss}
+        t1 = time.perf_counter()
         if len(self.slam.keyframes) > n_kf:
             kf = self.slam.keyframes[-1]
             kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
@@ -133,6 +142,7 @@ class FrameLoop:
         if self.slam.keyframes.landmark_keyframes.index_of(fid) >= 0 and not self.slam.keyframes.has_instances(fid):
             # a backend keyframe without neural-map rays: its landmarks carry these instance ids
             self.slam.keyframes.register_instances(fid, *self.mm.keyframe_instances(inst))
+        t_keyframes += (time.perf_counter() - t1) * 1e3
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
         if self.mask_dir is not None:
@@ -141,8 +151,8 @@ class FrameLoop:
         return {
             "segment": tm.get("segment", 0.0), "encode": tm.get("encode", 0.0),
             "classify": tm.get("classify", 0.0), "track": t_track, "render": t_render,
-            "check": tm.get("check", 0.0), "update": tm.get("update", 0.0),
-            "map": 0.0 if mr is None else mr.ms, "frame": (time.perf_counter() - t0) * 1e3,
+            "check": tm.get("check", 0.0), "update": tm.get("update", 0.0), "judge": t_judge,
+            "keyframes": t_keyframes, "map": 0.0 if mr is None else mr.ms, "frame": (time.perf_counter() - t0) * 1e3,
             "_loss": tr.loss, "_dynamic": int(inst.dynamic.sum()), "_updated": record is not None,
             "_retracked": retracked,
         }
