@@ -4,10 +4,12 @@ fps and per-component ms, on synthetic presets and on the real Bonn crowd clip i
     .venv/bin/python benchmarks/bench_dynamic.py                       # the full set (slow: hours on 2 cores)
     .venv/bin/python benchmarks/bench_dynamic.py --presets walker,crowd --frames 80 --size 320x240 --no-bonn
     .venv/bin/python benchmarks/bench_dynamic.py --presets crowd --modes dynamic,dynamic-noreplay --no-bonn ...
+    .venv/bin/python benchmarks/bench_dynamic.py --presets "" --device cuda --threads 2 --repeats 3   # the clip on a GPU
 
 Modes: dynamic, static, dynamic-noreplay (replay buffer off: compare classifier updates) and
 dynamic-yolo (the yolo-seg segmenter with ../shared/models/yolov8n-seg_deq_fp32.onnx).
 
+``--device`` (default cpu) is every run's device. ``DYNSLAM_SHARED`` names another folder for ../shared.
 Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete unless --fresh); prints a
 Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2 threads far slower there).
 
@@ -34,7 +36,8 @@ os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 sys.path.insert(0, str(REPO))
 
 
-YOLO = REPO.parent / "shared" / "models" / "yolov8n-seg_deq_fp32.onnx"
+SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))  # real data and weights (../shared)
+YOLO = SHARED / "models" / "yolov8n-seg_deq_fp32.onnx"
 PERSON = REPO / "configs" / "presets" / "yolo-person.yaml"
 
 
@@ -112,6 +115,8 @@ def main() -> None:
     ap.add_argument("--no-bonn", action="store_true")
     ap.add_argument("--bonn-frames", type=int, default=150)
     ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu",
+                    help="run.device of every run (cuda runs go to folders named ...-cuda)")
     ap.add_argument("--set", action="append", default=[], help="extra config override (repeatable)")
     ap.add_argument("--data-root", default=str(Path(tempfile.gettempdir()) / "dynslam-bench-data"))
     ap.add_argument("--out", default=str(REPO / "results" / "bench" / "dynamic"))
@@ -121,15 +126,16 @@ def main() -> None:
     if a.repeats < 1:
         ap.error("--repeats must be at least 1")
     w, h = (int(v) for v in a.size.lower().split("x"))
-    base = [f"data.root={a.data_root}", f"run.threads={a.threads}"] + a.set
+    base = [f"data.root={a.data_root}", f"run.threads={a.threads}", f"run.device={a.device}"] + a.set
+    dev = "" if a.device == "cpu" else f"-{a.device}"
     cases = []
     for p in [p for p in a.presets.split(",") if p]:
         cases.append((f"synth/{p}", base + [f"synth.width={w}", f"synth.height={h}", f"synth.frames={a.frames}"],
-                      f"synth-{p}-{w}x{h}-{a.frames}f"))
-    bonn = REPO.parent / "shared" / "data" / "bonn_crowd_150_449_s2"
+                      f"synth-{p}-{w}x{h}-{a.frames}f{dev}"))
+    bonn = SHARED / "data" / "bonn_crowd_150_449_s2"
     if not a.no_bonn:
         if bonn.is_dir():
-            cases.append((str(bonn), base + [f"data.frames={a.bonn_frames}"], f"bonn-crowd-clip-{a.bonn_frames}f"))
+            cases.append((str(bonn), base + [f"data.frames={a.bonn_frames}"], f"bonn-crowd-clip-{a.bonn_frames}f{dev}"))
         else:
             print(f"skipping the Bonn clip: {bonn} is absent", file=sys.stderr)
     modes = [m for m in a.modes.split(",") if m]
