@@ -91,7 +91,7 @@ class MotionClassifier:
         self.lr, self.max_steps, self.min_steps = float(lr), int(max_steps), int(min_steps)
         self.device = torch.device(device)
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+            torch.random.default_generator.manual_seed(seed)  # the CPU's only: CUDA's stay as they were
             self.net = MLP(self.in_dim, self.hidden).to(self.device)
 
     def probs(self, feats: np.ndarray) -> np.ndarray:

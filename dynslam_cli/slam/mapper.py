@@ -69,8 +69,8 @@ class Mapper:
         """A fresh neural map over ``bounds`` (initialised from run.seed) and its optimiser."""
         s = self.s
         s.bounds = np.asarray(bounds, np.float64)
-        with torch.random.fork_rng(devices=[]):  # initialise from run.seed, leave the global RNG alone
-            torch.manual_seed(int(s.cfg.run.seed))
+        with torch.random.fork_rng(devices=[]):  # initialise from run.seed, leave the global RNGs alone
+            torch.random.default_generator.manual_seed(int(s.cfg.run.seed))  # the CPU's: built there
             s.model = NeuralMap(s.cfg.map, s.bounds).to(s.device)
         s.map_opt = Adam(s.model.parameters(), lr=s.cfg.mapping.lr_map, betas=(0.9, 0.99), eps=1e-15,
                          fused=s.device.type in ("cpu", "cuda"))
