@@ -34,8 +34,8 @@ whose working set stays in cache can run faster than its bytes floor, so a ratio
 slower, not faster: 2 GB/s at 8 MB against 8-10 at 256 MB.)  On a shared machine the medians are
 noisy: compare rows of one run, not runs.
 
-CPU-side parts (ORB, the pose optimisation, bundle adjustment, the encoder) are always compared
-with the CPU peaks; with ``--device cuda`` the map's parts run on the GPU (the hash grid on its torch
+CPU-side parts (ORB, the pose optimisation, bundle adjustment) are always compared
+with the CPU peaks; with ``--device cuda`` the map's parts and the encoder run on the GPU (the hash grid on its torch
 path, whose ops the byte count then sees directly) and are compared with the GPU peaks, measured the
 same way in the same run.
 """
@@ -485,7 +485,8 @@ def render_row(slam, reps, peaks, where, sync) -> dict:
                     f"crossing; {n_pts[0] / (h * w):.0f} in all with the {RENDER_FINE} coloured), no gradients")
 
 
-def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:
+def encoder_row(cfg, frame, threads, reps, peaks, where: str = "cpu", sync=None) -> dict | None:
+    """The encoder where a run on ``where`` runs it (cuda: the torch network on the GPU)."""
     import torch
 
     from dynslam_cli.motion.encode_base import masked_crops, normalise_batch
@@ -495,8 +496,8 @@ def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:
     seg = make_segmenter(cfg.motion, None, threads).segment(frame.rgb, frame.depth)
     if seg.count == 0:
         return None
-    enc = EffNetLite0Encoder.from_config(cfg.motion, threads)
-    ms = median_ms(lambda: enc.encode(frame.rgb, seg.ids), reps, 1)
+    enc = EffNetLite0Encoder.from_config(cfg.motion, threads, where)
+    ms = median_ms(lambda: enc.encode(frame.rgb, seg.ids), reps, 1, sync)
     net = build_model(enc.input_size).eval()
     layer_bytes = [0]
 
@@ -510,7 +511,7 @@ def encoder_row(cfg, frame, threads, reps, peaks) -> dict | None:
         flops = counted(lambda: net(x)).flops
     for h in hooks:
         h.remove()
-    return make_row(f"instance encoder, {seg.count} crops {enc.input_size}px", "cpu", ms,
+    return make_row(f"instance encoder, {seg.count} crops {enc.input_size}px", where, ms,
                     Cost(flops, float(layer_bytes[0])), peaks,
                     f"EfficientNet-Lite0 on {enc.backend} (crops included), geometric segments of the frame; "
                     "depthwise convolutions do little arithmetic per byte")
@@ -573,7 +574,7 @@ def run(reps: int, threads: int, device_name: str) -> dict:
     rows += decoder_rows(slam, cur, reps, peaks, where, sync)
     rows.append(mapping_row(slam, cur, reps, peaks, where, sync))
     rows.append(render_row(slam, reps, peaks, where, sync))
-    enc = encoder_row(cfg, frames[0], threads, reps, peaks)
+    enc = encoder_row(cfg, frames[0], threads, reps, peaks, where, sync)
     if enc is not None:
         rows.append(enc)
     rows += backend_rows(cfg, intr, frames, reps, peaks)
