@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 DYNSLAM := $(VENV)/bin/dynslam
 TESTENV := MPLBACKEND=Agg ORT_DISABLE_TELEMETRY=1 PYTHONHASHSEED=0
 
-.PHONY: install test demo tables bench lint clean
+.PHONY: install test demo tables bench bench-cuda lint clean
 
 install: $(VENV)/.installed
 
@@ -32,6 +32,12 @@ tables: install
 
 bench: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# On a machine with a GPU: the CUDA tests, the limit table on CUDA and the Bonn clip (../shared) on CUDA, three rounds.
+bench-cuda: install
+	@tmp=$$(mktemp -d); HOME=$$tmp $(TESTENV) $(PY) -m pytest -q tests/test_run_cuda.py; rc=$$?; rm -rf $$tmp; [ $$rc -eq 0 ] || exit $$rc
+	$(PY) benchmarks/bench_limits.py --device cuda --threads 2
+	$(PY) benchmarks/bench_dynamic.py --presets "" --device cuda --threads 2 --repeats 3
 
 lint: install
 	$(PY) -m pip install -q ruff
