@@ -21,3 +21,23 @@ def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:
         cfg = resolve_config(spec, None, sets)
         run_sequence(spec, cfg, out_dir=out, overwrite=True, progress=True)
     return json.loads(done.read_text())
+
+
+def segment_crops(spec: str, step: int = 1, frames: int = 0, size: int = 0):
+    """The crops a run encodes: every ``step``-th frame of ``spec`` (its first ``frames``; 0 = all) cut
+    into the geometric segmenter's segments and cropped with the run's margin and fill at ``size`` px
+    (0: ``motion.encoder_input_size``, else EfficientNet-Lite0's).  Returns (per such frame a
+    (K, size, size, 3) uint8 array, the resolved config)."""
+    from dynslam_cli.config.resolve import resolve_config
+    from dynslam_cli.data.open import open_sequence
+    from dynslam_cli.motion.encode_base import CROP_BACKGROUND, CROP_MARGIN, masked_crops
+    from dynslam_cli.motion.encode_effnet import CONFIG_INPUT, MEAN, crop_fill
+    from dynslam_cli.motion.segment_geometric import GeometricSegmenter
+
+    cfg = resolve_config(spec, None, [f"data.frames={frames}"] if frames > 0 else [])
+    seq = open_sequence(spec, cfg)
+    seg = GeometricSegmenter.from_config(cfg.motion, seq.intrinsics)
+    fill = crop_fill(MEAN, CROP_BACKGROUND)
+    size = size or cfg.motion.encoder_input_size or CONFIG_INPUT
+    return [masked_crops(f.rgb, seg.segment(f.rgb, f.depth).ids, size, CROP_MARGIN, fill)
+            for f in seq if f.index % step == 0], cfg

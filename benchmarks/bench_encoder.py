@@ -53,23 +53,12 @@ def agreement(ref: np.ndarray, emb: np.ndarray) -> dict:
 
 def crops_of(path: Path, step: int, size: int) -> np.ndarray:
     """Normalised encoder inputs (N×3×size×size float32) of the segments of every ``step``-th frame."""
-    from dynslam_cli.config.resolve import resolve_config
-    from dynslam_cli.data.open import open_sequence
-    from dynslam_cli.motion.encode_base import CROP_BACKGROUND, CROP_MARGIN, masked_crops, normalise_batch
-    from dynslam_cli.motion.encode_effnet import MEAN, STD, crop_fill
-    from dynslam_cli.motion.segment_geometric import GeometricSegmenter
+    from _bench import segment_crops
 
-    cfg = resolve_config(str(path))
-    seq = open_sequence(str(path), cfg)
-    seg = GeometricSegmenter.from_config(cfg.motion, seq.intrinsics)
-    fill = crop_fill(MEAN, CROP_BACKGROUND)
-    out = []
-    for f in seq:
-        if f.index % step:
-            continue
-        c = masked_crops(f.rgb, seg.segment(f.rgb, f.depth).ids, size, CROP_MARGIN, fill)
-        if len(c):
-            out.append(normalise_batch(c, MEAN, STD))
+    from dynslam_cli.motion.encode_base import normalise_batch
+    from dynslam_cli.motion.encode_effnet import MEAN, STD
+
+    out = [normalise_batch(c, MEAN, STD) for c in segment_crops(str(path), step, size=size)[0] if len(c)]
     return np.concatenate(out) if out else np.zeros((0, 3, size, size), np.float32)
 
 

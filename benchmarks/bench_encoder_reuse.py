@@ -70,23 +70,6 @@ def replay(frames: list[tuple[np.ndarray, np.ndarray]], tau: float, age: int) ->
     return np.array(reused, bool), (np.array(given, np.float32) if given else np.zeros((0, dim), np.float32))
 
 
-def sequence_crops(spec: str, frames: int):
-    """Per frame: the (K, 160, 160, 3) crops of its geometric segments, as a run makes them."""
-    from dynslam_cli.config.resolve import resolve_config
-    from dynslam_cli.data.open import open_sequence
-    from dynslam_cli.motion.encode_base import CROP_BACKGROUND, CROP_MARGIN, masked_crops
-    from dynslam_cli.motion.encode_effnet import CONFIG_INPUT, MEAN, crop_fill
-    from dynslam_cli.motion.segment_geometric import GeometricSegmenter
-
-    sets = [f"data.frames={frames}"] if frames > 0 else []
-    cfg = resolve_config(spec, None, sets)
-    seq = open_sequence(spec, cfg)
-    seg = GeometricSegmenter.from_config(cfg.motion, seq.intrinsics)
-    fill = crop_fill(MEAN, CROP_BACKGROUND)
-    size = cfg.motion.encoder_input_size or CONFIG_INPUT
-    return [masked_crops(f.rgb, seg.segment(f.rgb, f.depth).ids, size, CROP_MARGIN, fill) for f in seq], cfg
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seqs", default="bonn", help="comma-separated: bonn or sequences dynslam run takes")
@@ -97,6 +80,7 @@ def main() -> None:
     a = ap.parse_args()
 
     import torch
+    from _bench import segment_crops
 
     from dynslam_cli.motion.encode_effnet import MEAN, STD
     from dynslam_cli.motion.encode_base import normalise_batch
@@ -111,7 +95,7 @@ def main() -> None:
         if name == "bonn" and not BONN.is_dir():
             print(f"skipping the Bonn clip: {BONN} is absent (set DYNSLAM_SHARED)")
             continue
-        per_frame, cfg = sequence_crops(spec, a.frames)
+        per_frame, cfg = segment_crops(spec, frames=a.frames)
         enc = make_encoder(cfg.motion, a.threads)
         frames, ms = [], []
         for crops in per_frame:

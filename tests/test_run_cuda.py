@@ -10,17 +10,12 @@ import torch
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
-from tiny_runs import early_check, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
+from tiny_runs import early_check, read_traj as _traj, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
 TINY = tiny_sets()
 walker = walker_fixture(96, 72, 10)
-
-
-def _traj(path):
-    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
-    return np.array([[float(v) for v in r] for r in rows])
 
 
 def _run(walker, out, *args):

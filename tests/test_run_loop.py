@@ -8,17 +8,12 @@ import numpy as np
 from typer.testing import CliRunner
 
 from dynslam_cli.cli import app
-from tiny_runs import early_check, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
+from tiny_runs import early_check, read_traj as _traj, tiny_sets, walker_fixture  # noqa: F401 (early_check: an autouse fixture)
 
 TINY = tiny_sets()
 
 
 walker = walker_fixture(96, 72, 10)
-
-
-def _traj(path):
-    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
-    return np.array([[float(v) for v in r] for r in rows])
 
 
 class TestFrameLoop:

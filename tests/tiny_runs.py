@@ -3,6 +3,7 @@ the tests that run one end to end), the tiny walker scene they run on, and start
 check early for such short clips (``early_check``: an autouse fixture for the modules that import
 it; ``walker_fixture``: a module-scoped fixture rendering the walker once)."""
 
+import numpy as np
 import pytest
 
 
@@ -45,3 +46,9 @@ def render_walker(tmp_path_factory, width: int, height: int, frames: int):
     out = tmp_path_factory.mktemp("synth") / "walker"
     render_preset("walker", out, SynthConfig(width=width, height=height, frames=frames, seed=3), progress=False)
     return out
+
+
+def read_traj(path) -> np.ndarray:
+    """A TUM trajectory file as an N×8 array (timestamp, t, q)."""
+    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    return np.array([[float(v) for v in r] for r in rows])

@@ -104,9 +104,9 @@ def identity_mismatch(old: dict, new: dict) -> Optional[str]:
         return f"config key {k} differs (old {_show(co.get(k, _ABSENT))}, new {_show(cn.get(k, _ABSENT))}){more}"
     if old.get("code") != new["code"]:
         return f"code version differs (old {old.get('code')}, new {new['code']})"
-    if old.get("device", "cpu") != new.get("device", "cpu"):
-        return (f"device differs (the checkpoint ran on {old.get('device', 'cpu')}, this run would use "
-                f"{new.get('device', 'cpu')}: pass --device {old.get('device', 'cpu')})")
+    was, now = old.get("device", "cpu"), new.get("device", "cpu")  # checkpoints before the field: the CPU
+    if was != now:
+        return f"device differs (the checkpoint ran on {was}, this run would use {now}: pass --device {was})"
     return None
 
 
