@@ -80,3 +80,46 @@ def test_closest_rendered_forgives_blurred_edges_not_movers():
     assert out[8, 10] == 1.0  # edge pixel: a neighbour agrees
     assert out[3, 16] == 3.0  # mover interior: nothing near agrees, still 2.2 m inconsistent
     np.testing.assert_array_equal(closest_rendered(ren, obs, radius=0), ren)
+
+
+def _visibility_every_keyframe(depth, pose_c2w, intr, keyframes, step, margin, border):
+    """keyframe_visibility as its definition reads: every point projected into every keyframe."""
+    from dynslam_cli.geometry.camera import pixel_dirs, transform
+    from dynslam_cli.motion.checkable import project_into
+    from dynslam_cli.slam.keyframes import DEPTH_STRIDE
+
+    H, W = depth.shape
+    vs, us = np.mgrid[0:H:step, 0:W:step]
+    z = depth[::step, ::step]
+    world = transform(pose_c2w, pixel_dirs(us.ravel(), vs.ravel(), intr.fx, intr.fy, intr.cx, intr.cy) * z.reshape(-1, 1))
+    frustum, observed = np.zeros(len(world), bool), np.zeros(len(world), bool)
+    for kf in keyframes:
+        pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H, border)
+        frustum |= inside
+        if kf.depth_small is not None:
+            hs, ws = kf.depth_small.shape
+            iu = np.clip(np.round(u / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+            iv = np.clip(np.round(v / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+            d_kf = kf.depth_small[iv, iu].astype(np.float32)
+            inside &= ~((d_kf <= 0) | (d_kf < pc[:, 2] - margin))
+        observed |= inside
+    return frustum.reshape(z.shape), observed.reshape(z.shape)
+
+
+def test_keyframe_visibility_equals_projecting_every_point_into_every_keyframe():
+    from dynslam_cli.geometry.lie import se3_exp_np
+
+    rng = np.random.default_rng(3)
+    H, W = 48, 64
+    depth = (2.0 + rng.uniform(-0.3, 0.3, (H, W))).astype(np.float32)
+    depth[rng.random((H, W)) < 0.05] = 0
+    kfs = []
+    for i in range(7):
+        pose = se3_exp_np(np.concatenate([rng.normal(0, 0.25, 3), rng.normal(0, 0.15, 3)]))
+        small = subsample_depth((1.5 + rng.uniform(0, 1.2, (H, W))).astype(np.float32)) if i % 3 else None
+        kfs.append(SimpleNamespace(pose_c2w=pose, depth_small=small))
+    for step, border in ((1, 0), (4, 3)):
+        frustum, observed = keyframe_visibility(depth, np.eye(4), INTR, kfs, step, 0.3, border)
+        ref_f, ref_o = _visibility_every_keyframe(depth, np.eye(4), INTR, kfs, step, 0.3, border)
+        assert 0 < ref_o.sum() < ref_f.sum() < ref_f.size  # every case occurs
+        assert np.array_equal(frustum[::step, ::step], ref_f) and np.array_equal(observed[::step, ::step], ref_o)

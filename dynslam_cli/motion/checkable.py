@@ -57,9 +57,14 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     world = transform(pose_c2w, pts)
     frustum = np.zeros(len(world), bool)
     observed = np.zeros(len(world), bool)
-    for kf in keyframes:
-        pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H, border)
-        frustum |= inside
+    # a point some keyframe observed is in that keyframe's frustum too, so both masks are final for it: each keyframe
+    # (newest first: they overlap the frame most) projects only the points not observed yet
+    todo = np.arange(len(world))
+    for kf in reversed(keyframes):
+        if len(todo) == 0:
+            break
+        pc, u, v, inside = project_into(world[todo], kf.pose_c2w, intr, W, H, border)
+        frustum[todo[inside]] = True
         small = kf.depth_small
         if small is not None and inside.any():
             hs, ws = small.shape
@@ -68,7 +73,8 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
             iv = np.clip(np.round(v[idx] / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
             d_kf = small[iv, iu].astype(np.float32)
             inside[idx[(d_kf <= 0) | (d_kf < pc[idx, 2] - occlusion_margin)]] = False
-        observed |= inside
+        observed[todo[inside]] = True
+        todo = todo[~inside]
 
     def up(m):
         return cv2.resize(m.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
