@@ -7,7 +7,9 @@ Cuts every ``--step``-th frame of each sequence into the geometric segmenter's s
 them as a run does (``motion.encoder_input_size`` 0: 160 px; the run's margin and fill), then encodes the crops
 with EfficientNet-Lite0 as
 
-- ``onnx-fp32``: the run's encoder (onnxruntime, the cached export): the reference;
+- ``onnx-fp32``: onnxruntime on the cached export (the run's encoder where OpenVINO is not installed):
+  the reference;
+- ``openvino-fp32``: the run's encoder, OpenVINO on the same export, in compiled batches of 4 and 1;
 - ``onnx-int8``: the same graph statically quantised by onnxruntime (QDQ, int8 weights per channel,
   uint8 activations), calibrated on the other half of the crops (its best case: the test's own data);
 - ``torch-fp32`` and ``torch-bf16`` (channels-last; bf16 by autocast, fast only on CPUs with AMX).
@@ -140,6 +142,14 @@ def main() -> None:
                 return model(xt)[0].float().numpy()
 
         variants = {name: (lambda xb, s=s: s.run(["features"], {"images": xb})[0]) for name, s in sessions.items()}
+        try:
+            from dynslam_cli.motion.openvino_utils import OvBatches
+
+            ov = OvBatches(fp32, (3, size, size), ("features",), args.threads)
+            variants = {"onnx-fp32": variants["onnx-fp32"], "openvino-fp32": lambda xb: ov.run(xb)[0],
+                        "onnx-int8": variants["onnx-int8"]}
+        except ImportError:
+            print("openvino-fp32 skipped: OpenVINO is not installed (pip install openvino)", flush=True)
         variants["torch-fp32"] = torch_run
         variants["torch-bf16"] = lambda xb: torch_run(xb, bf16=True)
         ref = None

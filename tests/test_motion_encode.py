@@ -70,24 +70,29 @@ SUIT_LIKE = {834, 906, 457, 819, 768}  # suit, Windsor tie, bow tie, stage, rugb
 
 
 @pytest.fixture(scope="module")
-def effnet(tmp_path_factory):
+def effnet_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def effnet(effnet_cache):
     from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
 
     try:
-        return EffNetLite0Encoder(backend="auto", cache=tmp_path_factory.mktemp("cache"))
+        return EffNetLite0Encoder(backend="auto", cache=effnet_cache)
     except DynslamError as exc:
         pytest.skip(str(exc))
 
 
 def test_effnet_classifies_sample_photos(effnet, shared_dir):
-    assert effnet.backend == "onnxruntime"
+    assert effnet.backend == "openvino"
     top = effnet.classify(_read(shared_dir / "images" / "bus.jpg"))
     assert top[0][0] in BUS_LIKE and top[0][1] > 0.5
     top = effnet.classify(_read(shared_dir / "images" / "zidane.jpg"))
     assert {i for i, _ in top} & {834, 906, 457}
 
 
-def test_effnet_torch_and_onnx_agree_and_embed(effnet):
+def test_effnet_torch_onnxruntime_and_openvino_agree_and_embed(effnet, effnet_cache):
     from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
 
     rgb, ids = _two_instances(120, 160)
@@ -96,6 +101,8 @@ def test_effnet_torch_and_onnx_agree_and_embed(effnet):
     assert np.allclose(np.linalg.norm(e1, axis=1), 1.0, atol=1e-5)
     e2 = EffNetLite0Encoder(backend="torch").encode(rgb, ids)
     assert np.abs(e1 - e2).max() < 1e-3
+    ort = EffNetLite0Encoder(backend="onnx", cache=effnet_cache)
+    assert ort.backend == "onnxruntime" and np.abs(e1 - ort.encode(rgb, ids)).max() < 1e-5
     assert effnet.encode(rgb, np.zeros_like(ids)).shape == (0, 1280)
     # the red and the green square are different things
     assert float(e1[0] @ e1[1]) < 0.95
@@ -110,7 +117,7 @@ def test_effnet_runs_at_a_smaller_input_size(shared_dir, tmp_path, monkeypatch):
     assert cfg.motion.encoder_input_size == 0  # effnet-lite0's own size: 160
     small = make_encoder(cfg.motion, threads=1)
     assert small.input_size == 160
-    assert (tmp_path / "effnet-lite0-160-v1.onnx").is_file() and small.backend == "onnxruntime"
+    assert (tmp_path / "effnet-lite0-160-v1.onnx").is_file() and small.backend == "openvino"
     top = small.classify(_read(shared_dir / "images" / "bus.jpg"))
     assert top[0][0] in BUS_LIKE
     rgb, ids = _two_instances(120, 160)
@@ -217,7 +224,21 @@ def test_effnet_on_a_cuda_run_is_the_torch_network(monkeypatch):
     moved = []
     monkeypatch.setattr(torch.nn.Module, "to", lambda self, device: moved.append(device) or self)
     enc = encode_effnet.EffNetLite0Encoder(device="cuda")
-    assert enc.backend == "torch" and enc.session is None and moved == ["cuda"]
+    assert enc.backend == "torch" and enc.session is None and enc.ov is None and moved == ["cuda"]
+
+
+def test_effnet_backend_falls_back_and_names_its_runtime(monkeypatch, tmp_path):
+    import sys
+
+    from dynslam_cli.motion.encode_effnet import EffNetLite0Encoder
+
+    with pytest.raises(DynslamError, match="unknown EfficientNet backend 'tensorrt'"):
+        EffNetLite0Encoder(backend="tensorrt")
+    monkeypatch.setitem(sys.modules, "openvino", None)  # OpenVINO not installed
+    enc = EffNetLite0Encoder(backend="auto", cache=tmp_path)
+    assert enc.backend == "onnxruntime" and enc.ov is None and enc.session is not None
+    with pytest.raises(ImportError):
+        EffNetLite0Encoder(backend="openvino", cache=tmp_path)
 
 
 def test_onnx_encoder_errors(tmp_path):

@@ -47,7 +47,7 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert meta["sequence"]["groundtruth"].endswith("groundtruth.txt") and meta["device"] == str(select_device("auto"))
     # the numba layer the kernels really ran on, not the one asked for before any kernel ran
     assert meta["versions"]["numba_threading_layer"] in ("workqueue", "omp", "tbb")
-    for lib in ("opencv", "onnxruntime", "gtsam", "scipy", "cpu"):  # what else a trajectory depends on
+    for lib in ("opencv", "onnxruntime", "openvino", "gtsam", "scipy", "cpu"):  # what else a trajectory depends on
         assert meta["versions"][lib], lib
     traj = _traj(out / "traj_est.txt")
     assert traj.shape == (6, 8)

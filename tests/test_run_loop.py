@@ -49,6 +49,7 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypat
     assert res.exit_code == 0, res.output
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "completed" and meta["mode"] == "dynamic"
+    assert meta["encoder"] == "color-hist on numpy"  # what computed the embeddings (runtimes round differently)
     stamps = [ln.split()[0] for ln in (walker / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
     masks = sorted(p.stem for p in (out / "masks").glob("*.png"))
     assert masks == sorted(stamps)

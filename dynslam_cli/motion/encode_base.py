@@ -24,6 +24,7 @@ CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 class Encoder(Protocol):
     name: str
     dim: int
+    backend: str  # what computes the embeddings (run.json names it: runtimes round differently)
 
     def encode(self, rgb: np.ndarray, ids_or_masks: np.ndarray) -> np.ndarray:
         """(K, D) float32 L2-normalised embeddings of the instances (ids 1..K of an H×W id map, or

@@ -13,6 +13,7 @@ class ColorHistEncoder:
     L2-normalised (Hellinger embedding)."""
 
     name = "color-hist"
+    backend = "numpy"
 
     def __init__(self, bins: tuple[int, int, int] = (8, 4, 4)):
         self.bins = tuple(int(b) for b in bins)

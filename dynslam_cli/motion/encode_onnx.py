@@ -84,6 +84,8 @@ def pool(y: np.ndarray, mode: str = "auto") -> np.ndarray:
 
 
 class OnnxEncoder:
+    backend = "onnxruntime"
+
     def __init__(self, model_path: str, preset: str = "onnx", input_size: int = 0,
                  mean: Optional[Sequence[float]] = None, std: Optional[Sequence[float]] = None,
                  output: str = "", pooling: str = "auto", margin: float = 0.1, background: str = "grey",

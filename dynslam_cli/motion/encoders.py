@@ -7,7 +7,7 @@ from dynslam_cli.motion.encode_base import Encoder
 
 
 def make_encoder(mcfg, threads: int = 0, device: str = "cpu") -> Encoder:
-    """The encoder named by ``motion.encoder``; ``threads``: onnxruntime intra-op threads (run.threads; 0 = its
+    """The encoder named by ``motion.encoder``; ``threads``: its runtime's threads (OpenVINO or onnxruntime; run.threads; 0 = its
     default); ``device``: the run's device type (``cuda``: EfficientNet in torch on the GPU, ONNX models on
     onnxruntime's CUDA provider where it is installed)."""
     name = mcfg.encoder

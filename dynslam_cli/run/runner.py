@@ -101,7 +101,8 @@ def versions(device=None) -> dict:
 # run.json's versions: key -> the distributions that provide it (the first installed one is named)
 LIBRARIES = {"opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
                         "opencv-contrib-python"),
-             "onnxruntime": ("onnxruntime", "onnxruntime-gpu"), "gtsam": ("gtsam",), "scipy": ("scipy",)}
+             "onnxruntime": ("onnxruntime", "onnxruntime-gpu"), "openvino": ("openvino",), "gtsam": ("gtsam",),
+             "scipy": ("scipy",)}
 
 
 def cpu_model() -> str:
@@ -265,6 +266,9 @@ class _Run:
         self.slam = SLAM(cfg, seq.intrinsics, self.device, bounds=sequence_bounds(cfg, seq), depth_noise=seq.depth_noise)
         masks = self.out / "masks" if cfg.run.save_masks else None
         self.loop = FrameLoop(cfg, seq.intrinsics, self.slam, self.device, masks)
+        if self.loop.mm is not None:  # what computed the embeddings (runtimes round differently)
+            enc = self.loop.mm.encoder
+            self.meta["encoder"] = f"{enc.name} on {enc.backend}"
         self.timings = {k: [] for k in TIMED}
         if state is None:
             return 0
