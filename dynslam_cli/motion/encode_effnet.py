@@ -5,7 +5,7 @@ The network is written here in torch and loads the plain state dict shipped by t
 squeeze-excitation, inputs (x − 127)/128). It is exported once to ONNX in the cache folder
 (``$DYNSLAM_CACHE`` or ``~/.cache/dynslam``) and run with OpenVINO on the CPU (2.5 times as fast as
 onnxruntime there), or onnxruntime where OpenVINO is not installed; torch is the fallback. On a CUDA
-run the torch network runs on the GPU. The backends' embeddings differ by rounding (about 1e-6).
+run the torch network runs on the GPU. The runtimes' embeddings differ by rounding (by less than 1e-6).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """OpenVINO inference of an image network on the CPU, in batches of fixed shape.
 
 On the CPU, OpenVINO runs EfficientNet-Lite0's depthwise convolutions about 2.5 times as fast as
-onnxruntime (docs/experiments.md, "The encoder on OpenVINO"), with embeddings equal to 1e-6. Every
+onnxruntime (docs/experiments.md, "The encoder on OpenVINO"), with embeddings within 1e-6 of its. Every
 new input shape costs OpenVINO a compilation (0.1-0.5 s), and the number of crops changes from
 frame to frame, so the network is compiled once for a batch of :data:`CHUNK` images and once for a
 single image: a batch of n images runs as n // CHUNK full chunks and n % CHUNK single images
