@@ -45,5 +45,6 @@ def test_cuda_run_with_the_default_encoder_and_resume(walker, tmp_path):
     assert json.loads((part / "run.json").read_text())["status"] == "interrupted"
     r = CliRunner().invoke(app, args + ["--out", str(part), "--resume"])
     assert r.exit_code == 0, r.output
-    assert json.loads((part / "run.json").read_text())["status"] == "completed"
+    meta = json.loads((part / "run.json").read_text())
+    assert meta["status"] == "completed" and meta["encoder"] == "effnet-lite0 on torch"  # the network on the GPU
     assert _traj(part / "traj_est.txt").shape == (10, 8)
