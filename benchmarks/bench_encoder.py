@@ -141,15 +141,18 @@ def main() -> None:
                 xt = torch.from_numpy(np.ascontiguousarray(xb)).to(memory_format=torch.channels_last)
                 return model(xt)[0].float().numpy()
 
-        variants = {name: (lambda xb, s=s: s.run(["features"], {"images": xb})[0]) for name, s in sessions.items()}
+        def ort_run(name):
+            return lambda xb: sessions[name].run(["features"], {"images": xb})[0]
+
+        variants = {"onnx-fp32": ort_run("onnx-fp32")}
         try:
             from dynslam_cli.motion.openvino_utils import OvBatches
 
             ov = OvBatches(fp32, (3, size, size), ("features",), args.threads)
-            variants = {"onnx-fp32": variants["onnx-fp32"], "openvino-fp32": lambda xb: ov.run(xb)[0],
-                        "onnx-int8": variants["onnx-int8"]}
+            variants["openvino-fp32"] = lambda xb: ov.run(xb)[0]
         except ImportError:
             print("openvino-fp32 skipped: OpenVINO is not installed (pip install openvino)", flush=True)
+        variants["onnx-int8"] = ort_run("onnx-int8")
         variants["torch-fp32"] = torch_run
         variants["torch-bf16"] = lambda xb: torch_run(xb, bf16=True)
         ref = None

@@ -7,6 +7,7 @@ from typer.testing import CliRunner
 from dynslam_cli.cli import app
 from dynslam_cli.run.runner import select_device
 from dynslam_cli.slam.toyscene import write_sequence
+from tiny_runs import read_traj as _traj
 
 TINY = ["--set", "map.n_levels=4", "--set", "map.log2_hashmap_size=12",
         "--set", "map.voxel_size=0.1", "--set", "mapping.first_iters=15",
@@ -22,11 +23,6 @@ def clip(tmp_path_factory):
 
 def _run(args):
     return CliRunner().invoke(app, args)
-
-
-def _traj(path):
-    rows = [ln.split() for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
-    return np.array([[float(v) for v in r] for r in rows])
 
 
 def _proc_status_mb(key: str) -> float:
