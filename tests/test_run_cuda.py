@@ -48,3 +48,12 @@ def test_cuda_run_with_the_default_encoder_and_resume(walker, tmp_path):
     meta = json.loads((part / "run.json").read_text())
     assert meta["status"] == "completed" and meta["encoder"] == "effnet-lite0 on torch"  # the network on the GPU
     assert _traj(part / "traj_est.txt").shape == (10, 8)
+
+
+def test_cuda_peak_memory_is_the_runs_own(walker, tmp_path):
+    # a GiB held on the GPU and released before the run: the run's peak must not count it
+    big = torch.empty(2 ** 28, dtype=torch.float32, device="cuda")
+    del big
+    _run(walker, tmp_path / "run", "--mode", "static", "--device", "cuda")
+    timing = json.loads((tmp_path / "run" / "timing.json").read_text())
+    assert 0 < timing["peak_gpu_mb"] < 1024

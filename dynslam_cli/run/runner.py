@@ -263,6 +263,8 @@ class _Run:
 
         cfg, seq = self.cfg, self.seq
         seed_everything(int(cfg.run.seed))
+        if self.device.type == "cuda":  # peak_gpu_mb is this run's, also after other runs in the process
+            torch.cuda.reset_peak_memory_stats(self.device)
         self.slam = SLAM(cfg, seq.intrinsics, self.device, bounds=sequence_bounds(cfg, seq), depth_noise=seq.depth_noise)
         masks = self.out / "masks" if cfg.run.save_masks else None
         self.loop = FrameLoop(cfg, seq.intrinsics, self.slam, self.device, masks)
