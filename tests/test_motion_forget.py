@@ -74,6 +74,28 @@ def test_forget_near_marks_keyframe_rays_on_a_departed_surface_for_good():
     assert forget_near([kf], np.zeros((0, 3)), intr, 0.05) == 0
 
 
+def test_forget_near_gives_what_a_distance_to_every_point_gives():
+    # rays all over the view, departed points in one corner of it: the rays within the radius of some point
+    rng = np.random.default_rng(0)
+    kfs = []
+    for k in range(3):
+        pixels = np.stack([rng.integers(0, 64, 400), rng.integers(0, 48, 400)], 1).astype(np.int32)
+        pose = np.eye(4)
+        pose[:3, 3] = rng.normal(0, 0.2, 3)
+        kfs.append(Keyframe(k, 0.0, pixels, np.zeros((400, 3), np.uint8), rng.uniform(0.5, 3, 400).astype(np.float32),
+                            np.zeros(400, np.int32), np.ones(400, bool), pose))
+    wp = kfs[1].world_points(INTR)
+    pts = wp[wp[:, 0] < np.quantile(wp[:, 0], 0.2)] + rng.normal(0, 0.03, (1, 3))
+    radius = 0.08
+    want = [np.sqrt(((kf.world_points(INTR)[:, None] - pts[None]) ** 2).sum(-1)).min(1) < radius for kf in kfs]
+    kfs[0].gone = want[0] & (rng.random(400) < 0.5)  # some already gone: not counted again
+    before = int(kfs[0].gone.sum())
+    assert forget_near(kfs, pts, INTR, radius) == sum(int(w.sum()) for w in want) - before
+    for kf, w in zip(kfs, want):
+        assert kf.gone.tolist() == w.tolist() and not kf.usable[w].any() and kf.usable[~w].all()
+    assert 0 < sum(int(w.sum()) for w in want) < 1200  # the test holds near and far rays
+
+
 def test_forget_seen_through_marks_rays_a_later_view_sees_past():
     intr = INTR
     # rays on a box at 1 m (centre), on the wall at 3 m (top-left) and on the box's edge pixel

@@ -278,3 +278,54 @@ def test_module_learns_what_the_backend_saw_move():
     # stayed put overrides it (an object set down at its new place is static there)
     rec = mod.check_and_update(f0, inst, pose, f0.depth, None, None, vote, vote)
     assert rec is not None and not any(rec.labels)
+
+
+def _instance_centres_numpy(depth, ids, k, intr, pose_c2w, step=2):
+    """The numpy expression the kernel replaced (the reference it must match bit for bit)."""
+    fx, fy, cx, cy = intr
+    d, im = depth[::step, ::step], ids[::step, ::step]
+    vs, us = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
+    m = (d > 0) & (im > 0) & np.isfinite(d)
+    z = d[m].astype(np.float64)
+    pts = np.stack([(us[m] - cx) / fx * z, (vs[m] - cy) / fy * z, z], 1)
+    lab = im[m] - 1
+    cnt = np.bincount(lab, minlength=k)[:k].astype(np.float64)
+    c = np.stack([np.bincount(lab, pts[:, j], minlength=k)[:k] for j in range(3)], 1) if k else np.zeros((0, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = c / cnt[:, None]
+    T = np.asarray(pose_c2w, np.float64)
+    return (c @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+def test_instance_centres_match_the_numpy_expression_bit_for_bit():
+    from dynslam_cli.motion._instance_kernels import instance_sums
+    from dynslam_cli.motion.module import instance_centres
+
+    rng = np.random.default_rng(0)
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pose[:3, 3] = [0.3, -1.2, 2.0]
+    intr = (525.0, 523.5, 319.5, 239.5)
+    for t in range(12):
+        h, w = rng.integers(5, 60, 2)
+        depth = rng.uniform(0.2, 6.0, (h, w)).astype(np.float32 if t % 2 else np.float64)
+        depth[rng.random((h, w)) < 0.2] = 0.0
+        depth[rng.random((h, w)) < 0.05] = np.nan
+        depth[rng.random((h, w)) < 0.05] = np.inf
+        ids = rng.integers(-1, 8, (h, w)).astype(np.int32 if t % 3 else np.int64)
+        for k in (0, 3, 7, 9):  # ids above k are not counted; instance 8 of 9 may have no pixel (NaN)
+            for step in (1, 2):
+                got = instance_centres(depth, ids, k, intr, pose, step)
+                want = _instance_centres_numpy(depth, ids, k, intr, pose, step)
+                assert got.shape == (k, 3) and got.dtype == np.float32
+                np.testing.assert_array_equal(got, want)
+        # and the kernel's float64 sums themselves, before the cast to float32 hides their last bits
+        sums, cnt = instance_sums(depth, ids, 7, *intr, 2)
+        d, im = depth[::2, ::2], ids[::2, ::2]
+        vs, us = np.mgrid[0:h:2, 0:w:2]
+        m = (d > 0) & (im > 0) & (im <= 7) & np.isfinite(d)
+        z = d[m].astype(np.float64)
+        lab = im[m] - 1
+        np.testing.assert_array_equal(cnt, np.bincount(lab, minlength=7).astype(np.float64))
+        for j, col in enumerate(((us[m] - intr[2]) / intr[0] * z, (vs[m] - intr[3]) / intr[1] * z, z)):
+            np.testing.assert_array_equal(sums[:, j], np.bincount(lab, col, minlength=7))

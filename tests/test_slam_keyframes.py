@@ -15,6 +15,42 @@ def test_depth_edges_mark_both_sides_of_a_step_and_holes():
     assert not depth_edges(np.full((5, 5), 2.0, np.float32), 0.05, 2).any()
 
 
+def _depth_edges_numpy(depth, rel_jump, dilate):
+    """The numpy expression the kernel replaced (the reference it must match bit for bit)."""
+    import cv2
+
+    d = np.asarray(depth, np.float32)
+    valid = d > 0
+    pad = np.pad(d, 1, mode="edge")
+    jump = np.zeros_like(valid)
+    for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
+        nb = pad[dy:dy + d.shape[0], dx:dx + d.shape[1]]
+        jump |= (np.abs(nb - d) > rel_jump * np.maximum(d, nb)) & (nb > 0) & valid
+        jump |= valid & (nb <= 0)
+    k = 2 * int(dilate) + 1
+    return jump if dilate <= 0 else cv2.dilate(jump.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+
+
+def test_depth_edges_match_the_numpy_expression_bit_for_bit():
+    rng = np.random.default_rng(0)
+    # depths c whose step to c / 0.95 is 5 % of the larger exactly, in float32: columns alternating
+    # between the two sit on the threshold everywhere, where the comparison and the rounding decide
+    c = (rng.random(2000) * 4 + 0.3).astype(np.float32)
+    far = (c / np.float32(0.95)).astype(np.float32)
+    tie = np.abs(far - c) == np.float32(0.05) * far
+    c, far = c[tie], far[tie]
+    assert len(c) > 10
+    for t in range(40):
+        h, w = rng.integers(1, 40, 2)
+        d = (rng.random((h, w)) * 4).astype(np.float32)
+        d[rng.random(d.shape) < 0.2] = 0.0
+        d[rng.random(d.shape) < 0.05] = np.nan
+        if t % 2:
+            d = np.where(np.arange(w) % 2 == 1, far[t], c[t]).astype(np.float32)[None].repeat(h, 0)
+        for rel, dil in ((0.05, 0), (0.05, 2), (0.3, 1), (0.0499, 3)):
+            np.testing.assert_array_equal(depth_edges(d, rel, dil), _depth_edges_numpy(d, rel, dil))
+
+
 def _kf(fid, n, start=0):
     from dynslam_cli.slam.keyframes import Keyframe
 

@@ -71,10 +71,17 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     if len(points) == 0 or not keyframes:
         return 0
     tree = cKDTree(points)
+    # only rays inside the points' box grown by the radius (a little more, for rounding) can be within it, and
+    # rays already gone stay gone: the tree is asked about the rest alone
+    slack = radius * (1 + 1e-6) + 1e-9
+    lo, hi = points.min(0) - slack, points.max(0) + slack
     newly = 0
     for kf in keyframes:
-        d, _ = tree.query(kf.world_points(intr), distance_upper_bound=radius)
-        newly += _mark_gone(kf, np.isfinite(d))
+        wp = kf.world_points(intr)
+        cand = np.flatnonzero(((wp >= lo) & (wp <= hi)).all(1) & ~_gone(kf))
+        if len(cand):
+            d, _ = tree.query(wp[cand], distance_upper_bound=radius)
+            newly += _mark_gone(kf, cand[np.isfinite(d)])
     return newly
 
 

@@ -59,16 +59,10 @@ def prior_class_ids(segmenter, names) -> np.ndarray:
 def instance_centres(depth: np.ndarray, ids: np.ndarray, k: int, intr: tuple, pose_c2w: np.ndarray,
                      step: int = 2) -> np.ndarray:
     """(k, 3) world-frame mean of the back-projected valid pixels of each instance (NaN if none)."""
-    fx, fy, cx, cy = intr
-    d = depth[::step, ::step]
-    im = ids[::step, ::step]
-    vs, us = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
-    m = (d > 0) & (im > 0) & np.isfinite(d)
-    z = d[m].astype(np.float64)
-    pts = np.stack([(us[m] - cx) / fx * z, (vs[m] - cy) / fy * z, z], 1)
-    lab = im[m] - 1
-    cnt = np.bincount(lab, minlength=k)[:k].astype(np.float64)
-    c = np.stack([np.bincount(lab, pts[:, j], minlength=k)[:k] for j in range(3)], 1) if k else np.zeros((0, 3))
+    from dynslam_cli.motion._instance_kernels import instance_sums
+
+    fx, fy, cx, cy = (float(v) for v in intr)
+    c, cnt = instance_sums(np.asarray(depth), np.asarray(ids), int(k), fx, fy, cx, cy, int(step))
     with np.errstate(invalid="ignore", divide="ignore"):
         c = c / cnt[:, None]
     T = np.asarray(pose_c2w, np.float64)

@@ -199,14 +199,9 @@ def depth_edges(depth: np.ndarray, rel_jump: float = 0.05, dilate: int = 2) -> n
     between 4-neighbours, or a valid pixel next to a missing one.  (H, W) bool."""
     import cv2
 
-    d = np.asarray(depth, np.float32)
-    valid = d > 0
-    pad = np.pad(d, 1, mode="edge")
-    jump = np.zeros_like(valid)
-    for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
-        nb = pad[dy:dy + d.shape[0], dx:dx + d.shape[1]]
-        jump |= (np.abs(nb - d) > rel_jump * np.maximum(d, nb)) & (nb > 0) & valid
-        jump |= valid & (nb <= 0)
+    from dynslam_cli.slam._edge_kernels import depth_jumps
+
+    jump = depth_jumps(np.ascontiguousarray(depth, np.float32), float(rel_jump))
     if dilate <= 0:
         return jump
     k = 2 * int(dilate) + 1
