@@ -91,7 +91,7 @@ def test_forget_near_gives_what_a_distance_to_every_point_gives():
     kfs[0].gone = want[0] & (rng.random(400) < 0.5)  # some already gone: not counted again
     before = int(kfs[0].gone.sum())
     assert forget_near(kfs, pts, INTR, radius) == sum(int(w.sum()) for w in want) - before
-    for kf, w in zip(kfs, want):
+    for kf, w in zip(kfs, want, strict=True):
         assert kf.gone.tolist() == w.tolist() and not kf.usable[w].any() and kf.usable[~w].all()
     assert 0 < sum(int(w.sum()) for w in want) < 1200  # the test holds near and far rays
 
