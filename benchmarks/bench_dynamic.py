@@ -153,7 +153,7 @@ def main() -> None:
                            for m in modes])
         rows += [aggregate([rr[i] for rr in rounds]) for i in range(len(modes))]
         ratios.update({(spec, m): round_ratios(rounds, m) for m in modes if m != "static"})
-    comps = ["segment", "encode", "track", "render", "check", "update", "judge", "keyframes", "map", "frame"]
+    comps = ["segment", "encode", "track", "render", "check", "update", "judge", "keyframes", "map", "wait", "frame"]
     if a.repeats > 1:
         print(f"speed: medians over {a.repeats} rounds; ATE: the first round's (range where rounds differ)")
     print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | " + " | ".join(comps) + " |")

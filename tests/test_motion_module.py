@@ -329,3 +329,31 @@ def test_instance_centres_match_the_numpy_expression_bit_for_bit():
         np.testing.assert_array_equal(cnt, np.bincount(lab, minlength=7).astype(np.float64))
         for j, col in enumerate(((us[m] - intr[2]) / intr[0] * z, (vs[m] - intr[3]) / intr[1] * z, z)):
             np.testing.assert_array_equal(sums[:, j], np.bincount(lab, col, minlength=7))
+
+
+class TestPerceive:
+    """perceive(): what the frame's pixels alone decide; observe(seen=...) classifies it as observe() would."""
+
+    def test_observe_from_perception_equals_observe(self):
+        f = _frame(0, person_x=-0.3)
+        mod = _module()
+        seen = mod.perceive(f)
+        assert seen.frame_index == 0 and seen.seg.count == seen.embeddings.shape[0] >= 3
+        assert set(seen.timings) == {"segment", "encode"}
+        a = mod.observe(f, np.eye(4), seen)
+        b = mod.observe(f, np.eye(4))
+        assert np.array_equal(a.ids, b.ids) and np.array_equal(a.embeddings, b.embeddings)
+        assert np.array_equal(a.static_mask, b.static_mask) and np.array_equal(a.probs, b.probs)
+        assert a.timings["segment"] == seen.timings["segment"] and "classify" in a.timings
+
+    def test_perception_does_not_depend_on_the_classifier(self):
+        f = _frame(0, person_x=-0.3)
+        mod = _module()
+        before = mod.perceive(f)
+        inst = mod.observe(f, np.eye(4), before)
+        room_depth = render_toy(W, H, person=False)[1]
+        assert mod.check_and_update(f, inst, np.eye(4), room_depth[::2, ::2], None) is not None  # g learnt
+        after = mod.perceive(f)
+        assert np.array_equal(before.seg.ids, after.seg.ids)
+        assert np.array_equal(before.embeddings, after.embeddings)
+        assert mod.observe(f, np.eye(4), after).dynamic.sum() == 1  # the classifier, not the perception, changed

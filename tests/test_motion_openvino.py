@@ -68,6 +68,20 @@ class TestOvBatches:
         alone = np.concatenate([ov.run(x[i:i + 1])[0] for i in range(len(x))])
         assert np.allclose(whole, alone, atol=1e-6)
 
+    def test_threads_at_once_get_what_each_gets_alone(self, net_path):
+        # a run encodes the next frame in a worker thread while the loop encodes the rendered view (run/ahead.py):
+        # one infer request would refuse the second call ("Infer Request is busy")
+        from concurrent.futures import ThreadPoolExecutor
+
+        rng = np.random.default_rng(2)
+        xs = [rng.normal(size=(n, 3, 24, 24)).astype(np.float32) for n in (1, CHUNK, CHUNK + 3, 2 * CHUNK)] * 6
+        ov = OvBatches(net_path, (3, 24, 24), ("features", "logits"), threads=1)
+        alone = [ov.run(x) for x in xs]
+        with ThreadPoolExecutor(4) as pool:
+            together = list(pool.map(ov.run, xs))
+        for a, b in zip(alone, together, strict=True):
+            assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
     def test_an_empty_batch_is_refused(self, net_path):
         with pytest.raises(ValueError, match="at least one image"):
             OvBatches(net_path, (3, 24, 24), ("features",)).run(np.zeros((0, 3, 24, 24), np.float32))

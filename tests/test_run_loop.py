@@ -99,3 +99,40 @@ def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
     assert json.loads((part / "run.json").read_text())["status"] == "completed"
     np.testing.assert_allclose(_traj(part / "traj_est.txt"), _traj(full / "traj_est.txt"), atol=1e-6)
     assert (part / "classifier_updates.jsonl").read_text() == (full / "classifier_updates.jsonl").read_text()
+
+
+def test_dynamic_run_at_two_threads_equals_the_frames_in_order(walker, tmp_path):
+    """With a second core the run segments and encodes each next frame beside the current one
+    (run/ahead.py); the trajectory and the classifier's updates are those of the frames in order."""
+    import torch
+
+    from dynslam_cli.config.loader import config_from_file
+    from dynslam_cli.data.open import open_sequence
+    from dynslam_cli.run.loop import FrameLoop
+    from dynslam_cli.run.runner import sequence_bounds
+    from dynslam_cli.slam.system import SLAM
+    from dynslam_cli.utils.threads import seed_everything, set_threads
+
+    out = tmp_path / "ahead"
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out), "-q"]
+                             + tiny_sets(threads=2))
+    assert res.exit_code == 0, res.output
+    timing = json.loads((out / "timing.json").read_text())
+    assert timing["mean_ms"]["encode"] > 0 and "wait" in timing["mean_ms"]
+    cfg = config_from_file(out / "config.yaml")
+    old = torch.get_num_threads()
+    try:
+        set_threads(2)
+        seed_everything(int(cfg.run.seed))
+        seq = open_sequence(str(walker), cfg, progress=False)
+        slam = SLAM(cfg, seq.intrinsics, torch.device("cpu"), bounds=sequence_bounds(cfg, seq),
+                    depth_noise=seq.depth_noise)
+        loop = FrameLoop(cfg, seq.intrinsics, slam, torch.device("cpu"))
+        for i in range(len(seq)):
+            loop.process(seq[i], seq.stamps[i])
+        traj, _ = slam.final_trajectory()
+    finally:
+        torch.set_num_threads(old)
+    assert np.allclose(_traj(out / "traj_unsmoothed.txt")[:, 1:4], traj[:, :3, 3], atol=1e-6)
+    updates = [json.loads(ln) for ln in (out / "classifier_updates.jsonl").read_text().splitlines()]
+    assert [u["labels"] for u in updates] == [r["labels"] for r in loop.records]

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def instance_sums(depth: np.ndarray, ids: np.ndarray, k: int, fx: float, fy: float, cx: float, cy: float,
                   step: int) -> tuple[np.ndarray, np.ndarray]:
     """((k, 3) float64 sums of the camera-frame points, (k,) float64 pixel counts) of the instances

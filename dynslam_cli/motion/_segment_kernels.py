@@ -2,7 +2,8 @@
 normals and the edge tests, one pass over the image each instead of numpy's whole-array
 temporaries.  float32 throughout, with numpy's order of operations (``np.cross``, a norm summed
 x, y, z, thresholds cast to float32 as numpy casts a Python scalar against a float32 array), so
-the edges are the ones the numpy expressions give, bit for bit (tests/test_motion_segment.py)."""
+the edges are the ones the numpy expressions give, bit for bit (tests/test_motion_segment.py).
+They release the GIL: a run segments the next frame in a background thread (run/ahead.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from dynslam_cli.utils.threads import choose_numba_layer
 choose_numba_layer()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def points(dm: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The h×w×3 point image ``(d·u[x], d·v[y], d)`` of a depth image ``dm`` (h×w) and the
     normalised image coordinates ``u`` (w) and ``v`` (h)."""
@@ -29,7 +30,7 @@ def points(dm: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return P
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def normals(S: np.ndarray, wsum: np.ndarray) -> np.ndarray:
     """Unit normals (h×w×3 float32) of the point image ``P = S / max(wsum, 1e-6)`` (``S`` h×w×3,
     ``wsum`` h×w: a box-filtered point image and its box-filtered validity) from central
@@ -84,7 +85,7 @@ def _step_edge(dm, lab, use_lab, y0, x0, y1, x1, depth_jump, color_jump, color_s
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def step_edges(dm: np.ndarray, lab: np.ndarray, depth_jump: float, color_jump: float,
                color_step: float) -> np.ndarray:
     """Edge mask (h×w bool): pixels without depth (``dm`` ≤ 0), and both pixels of every
@@ -114,7 +115,7 @@ def _turns(n, y0, x0, y1, x1, cos_max):
     return dot < cos_max
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def crease_edges(n: np.ndarray, smooth: np.ndarray, offset: int, cos_max: float, edge: np.ndarray) -> None:
     """Adds to ``edge`` (in place) both pixels of every pair ``offset`` px apart along a row or a
     column, both ``smooth``, whose normals (``n``) turn by more than arccos(``cos_max``)."""

@@ -16,7 +16,7 @@ from dynslam_cli.motion.classifier import MotionClassifier, ReplayBuffer, load_p
 from dynslam_cli.motion.encoders import make_encoder
 from dynslam_cli.motion.segment_geometric import GeometricSegmenter
 from dynslam_cli.motion.segmenters import make_segmenter
-from dynslam_cli.motion.types import FrameInstances, UpdateRecord, intrinsics_tuple
+from dynslam_cli.motion.types import FrameInstances, Perception, UpdateRecord, intrinsics_tuple
 
 # The classifier g: a 2-layer MLP of this many hidden units, Adam at this learning rate, at most UPDATE_STEPS and at
 # least MIN_UPDATE_STEPS steps per update (then it stops once the contradictions are fixed); a reservoir replay
@@ -129,26 +129,32 @@ class MotionModule:
         return static
 
     # --- per frame
-    def observe(self, frame, pose_c2w_guess: np.ndarray) -> FrameInstances:
+    def perceive(self, frame) -> Perception:
+        """Segment the frame and encode its instances: what depends on its pixels alone (thread-safe
+        beside the rest of a run: no torch parameters, no numba thread pool, no shared state)."""
         t0 = time.perf_counter()
         rgb, depth = frame.rgb, frame.depth
         seg = self.segmenter.segment(rgb, depth)
         t1 = time.perf_counter()
-        k = seg.count
-        emb = self.encoder.encode(rgb, seg.ids) if k else np.zeros((0, self.encoder.dim), np.float32)
+        emb = self.encoder.encode(rgb, seg.ids) if seg.count else np.zeros((0, self.encoder.dim), np.float32)
         t2 = time.perf_counter()
-        centres = instance_centres(depth, seg.ids, k, self.intr, pose_c2w_guess)
+        return Perception(int(getattr(frame, "index", -1)), seg, emb,
+                          {"segment": (t1 - t0) * 1e3, "encode": (t2 - t1) * 1e3})
+
+    def observe(self, frame, pose_c2w_guess: np.ndarray, seen: Optional[Perception] = None) -> FrameInstances:
+        """The frame's instances classified (``seen``: its :meth:`perceive`, computed now when None)."""
+        p = self.perceive(frame) if seen is None else seen
+        t2 = time.perf_counter()
+        seg, emb = p.seg, p.embeddings
+        centres = instance_centres(frame.depth, seg.ids, seg.count, self.intr, pose_c2w_guess)
         feats = self._features(emb, centres)
         dyn, probs, pp = self._classify(feats, emb, seg.class_ids)
         t3 = time.perf_counter()
-        inst = FrameInstances(
+        return FrameInstances(
             frame_index=int(getattr(frame, "index", -1)), ids=seg.ids, embeddings=emb, centres=centres,
             dynamic=dyn, probs=probs, static_mask=self._static_mask(seg.ids, dyn), class_ids=seg.class_ids,
-            prior_probs=pp,
-            timings={"segment": (t1 - t0) * 1e3, "encode": (t2 - t1) * 1e3, "classify": (t3 - t2) * 1e3},
-            features=feats,
+            prior_probs=pp, timings={**p.timings, "classify": (t3 - t2) * 1e3}, features=feats,
         )
-        return inst
 
     def _feats_of(self, inst: FrameInstances) -> np.ndarray:
         f = inst.features

@@ -38,6 +38,9 @@ def ort_session(path: str | Path, threads: int = 0, device: str = "cpu"):
     if threads > 0:
         so.intra_op_num_threads = threads
         so.inter_op_num_threads = 1
+    # no spin-waiting between operators: the session runs beside the run's torch work (run/ahead.py), whose cores a
+    # spinning pool thread would take
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     wanted = ("CUDAExecutionProvider", "CPUExecutionProvider") if device == "cuda" else ("CPUExecutionProvider",)
     providers = [p for p in wanted if p in ort.get_available_providers()]
     try:

@@ -10,6 +10,7 @@ single image: a batch of n images runs as n // CHUNK full chunks and n % CHUNK s
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -53,14 +54,23 @@ class OvBatches:
             cfg["INFERENCE_NUM_THREADS"] = int(threads)
         self.chunk = max(1, int(chunk))
         self.outputs = tuple(outputs)
-        self.requests = {}
+        self.compiled = {}
         for b in sorted({self.chunk, 1}):
             model = core.read_model(str(path))
             model.reshape({model.inputs[0].get_any_name(): [b, *image_chw]})
-            self.requests[b] = core.compile_model(model, "CPU", cfg).create_infer_request()
+            self.compiled[b] = core.compile_model(model, "CPU", cfg)
+        # an infer request serves one call at a time: each thread gets its own (a run encodes the next frame's
+        # segments in a worker thread while the loop encodes the rendered view's, run/ahead.py)
+        self._local = threading.local()
+
+    def _request(self, b: int):
+        reqs = self._local.__dict__.setdefault("requests", {})
+        if b not in reqs:
+            reqs[b] = self.compiled[b].create_infer_request()
+        return reqs[b]
 
     def _infer(self, x: np.ndarray) -> list[np.ndarray]:
-        res = self.requests[len(x)].infer({0: np.ascontiguousarray(x, np.float32)})
+        res = self._request(len(x)).infer({0: np.ascontiguousarray(x, np.float32)})
         by_name = {k.get_any_name(): v for k, v in res.items()}
         return [np.array(by_name[n], np.float32, copy=True) for n in self.outputs]
 

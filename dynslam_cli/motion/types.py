@@ -30,6 +30,18 @@ class Segmentation:
 
 
 @dataclass
+class Perception:
+    """What a frame's pixels alone decide, before its pose and the classifier: the segmentation and
+    each instance's embedding (:meth:`MotionModule.perceive`; the run computes it for the next frame
+    while the current one is tracked and mapped) and the milliseconds each took."""
+
+    frame_index: int
+    seg: Segmentation
+    embeddings: np.ndarray  # (K, D) float32, L2-normalised
+    timings: dict = field(default_factory=dict)  # segment, encode -> ms
+
+
+@dataclass
 class FrameInstances:
     """What :meth:`MotionModule.observe` returns for a frame.
 

@@ -40,10 +40,13 @@ CHECK_WARMUP = 5
 RETRACK_FRACTION = 0.02
 
 
-# What process() times, per frame (ms); the motion module's parts are 0 in static mode. "judge": what decides
-# beside the classifier's check (the checkable region, stayed put, the backend's vote, forgetting departed
-# things); "keyframes": re-masking the stored keyframes after an update and tagging a new keyframe's instances.
-TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", "judge", "keyframes", "map", "frame")
+# What a run times per frame (ms); the motion module's parts are 0 in static mode.  segment and encode run one frame
+# ahead, beside the frame before (run/ahead.py): "wait" is the time the loop waited for them and the frame's reading,
+# "frame" the frame's wall time with that wait.  "judge": what decides beside the classifier's check (the checkable
+# region, stayed put, the backend's vote, forgetting departed things); "keyframes": re-masking the stored keyframes
+# after an update and tagging a new keyframe's instances.
+TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", "judge", "keyframes", "map", "wait",
+         "frame")
 
 
 class FrameLoop:
@@ -72,10 +75,17 @@ class FrameLoop:
     def _guess(self, frame) -> np.ndarray:
         return first_pose(frame) if self.slam.n_frames == 0 else self.slam.predict_pose()
 
-    def process(self, frame, stamp: str) -> dict:
-        """Process one frame; returns the per-component timings (ms, :data:`TIMED`) and what happened."""
+    def perceive(self, frame):
+        """What the motion module decides from the frame's pixels alone (segments, embeddings), for
+        :meth:`process`'s ``seen``; None in static mode.  Safe to run in another thread while this
+        loop processes the frame before."""
+        return None if self.mm is None else self.mm.perceive(frame)
+
+    def process(self, frame, stamp: str, seen=None) -> dict:
+        """Process one frame (``seen``: its :meth:`perceive`, else computed here); returns the
+        per-component timings (ms, :data:`TIMED`) and what happened."""
         t0 = time.perf_counter()
-        inst = None if self.mm is None else self.mm.observe(frame, self._guess(frame))
+        inst = None if self.mm is None else self.mm.observe(frame, self._guess(frame), seen)
         static = None if inst is None else inst.static_mask
         tr = self.slam.track(frame, static)
         t_track = tr.ms
@@ -152,7 +162,7 @@ class FrameLoop:
             "segment": tm.get("segment", 0.0), "encode": tm.get("encode", 0.0),
             "classify": tm.get("classify", 0.0), "track": t_track, "render": t_render,
             "check": tm.get("check", 0.0), "update": tm.get("update", 0.0), "judge": t_judge,
-            "keyframes": t_keyframes, "map": 0.0 if mr is None else mr.ms, "frame": (time.perf_counter() - t0) * 1e3,
+            "keyframes": t_keyframes, "map": 0.0 if mr is None else mr.ms, "wait": 0.0, "frame": (time.perf_counter() - t0) * 1e3,
             "_loss": tr.loss, "_dynamic": int(inst.dynamic.sum()), "_updated": record is not None,
             "_retracked": retracked,
         }

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def depth_jumps(d: np.ndarray, rel_jump: float) -> np.ndarray:
     """(h, w) bool: valid pixels (``d`` > 0) with a 4-neighbour that has no depth (≤ 0) or whose
     depth steps by more than ``rel_jump`` times the larger of the two.  Past the image border a
