@@ -13,8 +13,8 @@ second half of the rows.  Sizes are the ``nbytes`` of the numpy arrays in the ob
 attributes (the mapper gathers each optimisation's rays from the keyframes' own arrays and keeps no
 copy of them).
 
-The rows are taken after each frame by wrapping the runner's per-frame step (``_Run._step``: the
-runner has no public per-frame hook); the run itself is unchanged.
+The rows are taken after each frame by wrapping the frame loop's ``FrameLoop.process`` (run/loop.py; the
+runner has no per-frame hook); the run itself is unchanged.
 
 Measured at 1927648 (walker preset 640x480, 1000 frames, one thread, 2 busy cores, 1000 first-frame
 iterations): peak 1707 MB (mesh extraction included; timing.json's peak_rss_mb says the same), RSS
@@ -149,30 +149,33 @@ def table(rows: list[dict]) -> str:
 
 def measure(spec: str, frames: int, every: int, out: Path, sets: list[str], progress: bool) -> dict:
     from dynslam_cli.config.resolve import resolve_config
+    from dynslam_cli.data.open import open_sequence
     from dynslam_cli.run import runner
+    from dynslam_cli.run.loop import FrameLoop
 
     cfg = resolve_config(spec, None, ["run.mode=dynamic", "run.threads=1", f"data.frames={frames}"] + sets)
+    n = len(open_sequence(spec, cfg, progress=False))
     sampler = Sampler()
     rows: list[dict] = []
     t0 = time.perf_counter()
-    step = runner._Run._step
+    process = FrameLoop.process
 
-    def hooked(run, i: int) -> dict:
-        res = step(run, i)
-        done = i + 1
-        if done % every == 0 or done == run.n:
+    def hooked(loop, frame, *args, **kwargs) -> dict:
+        res = process(loop, frame, *args, **kwargs)
+        done = loop.slam.n_frames
+        if done % every == 0 or done == n:
             rows.append({"frames": done, "rss_mb": rss_mb(), "peak_mb": sampler.take_peak(),
-                         "s": time.perf_counter() - t0, **snapshot(run.slam, run.loop)})
+                         "s": time.perf_counter() - t0, **snapshot(loop.slam, loop)})
             if progress:
                 print(f"\n{done} frames: {rows[-1]['rss_mb']:.0f} MB", file=sys.stderr, flush=True)
         return res
 
     sampler.start()
-    runner._Run._step = hooked
+    FrameLoop.process = hooked
     try:
         res = runner.run_sequence(spec, cfg, out_dir=out, overwrite=True, progress=progress)
     finally:
-        runner._Run._step = step
+        FrameLoop.process = process
         sampler.stop.set()
         sampler.join()
     return {"sequence": spec, "frames": res.frames, "every": every, "fps": res.fps, "rows": rows,
