@@ -151,6 +151,7 @@ def measure(spec: str, frames: int, every: int, out: Path, sets: list[str], prog
     from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.data.open import open_sequence
     from dynslam_cli.run import runner
+    from dynslam_cli.run.environment import peak_rss_mb
     from dynslam_cli.run.loop import FrameLoop
 
     cfg = resolve_config(spec, None, ["run.mode=dynamic", "run.threads=1", f"data.frames={frames}"] + sets)
@@ -180,7 +181,7 @@ def measure(spec: str, frames: int, every: int, out: Path, sets: list[str], prog
         sampler.join()
     return {"sequence": spec, "frames": res.frames, "every": every, "fps": res.fps, "rows": rows,
             "peak_rss_mb_frames": max((r["peak_mb"] for r in rows), default=0.0),
-            "peak_rss_mb": max(sampler.peak, runner.peak_rss_mb()),  # includes the final BA and the mesh
+            "peak_rss_mb": max(sampler.peak, peak_rss_mb()),  # includes the final BA and the mesh
             "growth_per_100_frames": {k: growth_per_100(rows, k) for k in GROWTH} if rows else {},
             "run_dir": str(out)}
 

@@ -14,11 +14,8 @@ record differs and names the difference.
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
-import platform
 import random
-import resource
 import sys
 import traceback
 from contextlib import closing
@@ -31,9 +28,10 @@ import numpy as np
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.run import checkpoint
-from dynslam_cli.run.folder import FolderLock, claim_folder, read_status
 from dynslam_cli.run.ahead import ReadAhead
-from dynslam_cli.utils.io import atomic_path, proc_status, write_json_atomic, write_text_atomic
+from dynslam_cli.run.environment import peak_rss_mb, versions
+from dynslam_cli.run.folder import FolderLock, claim_folder, read_status
+from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
 from dynslam_cli.utils.threads import seed_everything, set_threads
 
 MODES = ("static", "dynamic")
@@ -68,56 +66,6 @@ def select_device(name: str):
     raise DynslamError(f"unknown device '{name}': use auto, cpu or cuda")
 
 
-def versions(device=None) -> dict:
-    """Library versions, the CPU's model and, on a CUDA device, the GPU's name and CUDA's version."""
-    import torch
-
-    out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__}
-    out["dynslam"] = checkpoint.code_version()
-    try:
-        import numba
-
-        out["numba"] = numba.__version__
-        try:
-            out["numba_threading_layer"] = numba.threading_layer()
-        except ValueError:  # no parallel kernel has run yet: the layer asked for (utils/threads.py)
-            out["numba_threading_layer"] = f"{numba.config.THREADING_LAYER} (requested)"
-    except Exception:
-        pass
-    # the other libraries a trajectory depends on (ORB, the encoder, bundle adjustment), and the CPU:
-    # float results, so trajectories, differ between builds and CPUs (README, "Reproducibility")
-    for key, dists in LIBRARIES.items():
-        for dist in dists:
-            try:
-                out[key] = importlib.metadata.version(dist)
-                break
-            except importlib.metadata.PackageNotFoundError:
-                continue
-    out["cpu"] = cpu_model()
-    if device is not None and device.type == "cuda":
-        out["gpu"] = torch.cuda.get_device_name(device)
-        out["cuda"] = torch.version.cuda
-    return out
-
-
-# run.json's versions: key -> the distributions that provide it (the first installed one is named)
-LIBRARIES = {"opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
-                        "opencv-contrib-python"),
-             "onnxruntime": ("onnxruntime", "onnxruntime-gpu"), "openvino": ("openvino",), "gtsam": ("gtsam",),
-             "scipy": ("scipy",)}
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux /proc/cpuinfo; else platform.processor(); "unknown")."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown"
-
-
 def default_out_dir(cfg, dataset: str, name: str, variant: str) -> Path:
     return Path(cfg.run.results_root) / dataset / name / variant
 
@@ -150,17 +98,6 @@ def write_tum(path: Path, stamps: list[str], poses: np.ndarray) -> Path:
         t = T[:3, 3]
         lines.append(f"{s} {t[0]:.7f} {t[1]:.7f} {t[2]:.7f} {qq[0]:.7f} {qq[1]:.7f} {qq[2]:.7f} {qq[3]:.7f}")
     return write_text_atomic(path, "\n".join(lines) + "\n")
-
-
-def peak_rss_mb() -> float:
-    """The process's peak resident memory so far (MiB): Linux's VmHWM (the kernel's high-water mark
-    brought up to the resident set now; ru_maxrss alone can lag it by a few pages), else ru_maxrss
-    (KiB on Linux, bytes on macOS)."""
-    hwm = proc_status("VmHWM")
-    if hwm is not None and hwm.isdigit():
-        return int(hwm) / 1024.0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (2.0 ** 20 if sys.platform == "darwin" else 1024.0)
 
 
 def _say(progress: bool, msg: str) -> None:
