@@ -123,3 +123,22 @@ def test_keyframe_visibility_equals_projecting_every_point_into_every_keyframe()
         ref_f, ref_o = _visibility_every_keyframe(depth, np.eye(4), INTR, kfs, step, 0.3, border)
         assert 0 < ref_o.sum() < ref_f.sum() < ref_f.size  # every case occurs
         assert np.array_equal(frustum[::step, ::step], ref_f) and np.array_equal(observed[::step, ::step], ref_o)
+
+
+def test_samples_without_depth_are_the_camera_centre_seen_or_not():
+    # every sample without depth back-projects to the frame's camera centre: a keyframe 1 m behind the frame,
+    # looking the same way, sees that point; one 1 m in front of it does not
+    rng = np.random.default_rng(4)
+    H, W = 48, 64
+    depth = (2.0 + rng.uniform(-0.3, 0.3, (H, W))).astype(np.float32)
+    depth[rng.random((H, W)) < 0.3] = 0
+    wall = subsample_depth(np.full((H, W), 2.5, np.float32))
+    for dz, seen in ((-1.0, True), (1.0, False)):
+        pose = np.eye(4)
+        pose[2, 3] = dz
+        kfs = [SimpleNamespace(pose_c2w=pose, depth_small=wall)]
+        frustum, observed = keyframe_visibility(depth, np.eye(4), INTR, kfs, 2, 0.3, 0)
+        ref_f, ref_o = _visibility_every_keyframe(depth, np.eye(4), INTR, kfs, 2, 0.3, 0)
+        assert np.array_equal(frustum[::2, ::2], ref_f) and np.array_equal(observed[::2, ::2], ref_o)
+        none = depth[::2, ::2] == 0
+        assert ref_o[none].all() == seen and ref_f[none].all() == seen and ref_f[none].any() == seen

@@ -58,8 +58,12 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     frustum = np.zeros(len(world), bool)
     observed = np.zeros(len(world), bool)
     # a point some keyframe observed is in that keyframe's frustum too, so both masks are final for it: each keyframe
-    # (newest first: they overlap the frame most) projects only the points not observed yet
-    todo = np.arange(len(world))
+    # (newest first: they overlap the frame most) projects only the points not observed yet.  Every sample without
+    # depth back-projects to the camera centre, one and the same point: the first of them stands for all
+    none = np.flatnonzero(z.ravel() == 0)
+    todo = np.flatnonzero(z.ravel() != 0)
+    if len(none):
+        todo = np.append(todo, none[0])
     for kf in reversed(keyframes):
         if len(todo) == 0:
             break
@@ -75,6 +79,8 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
             inside[idx[(d_kf <= 0) | (d_kf < pc[idx, 2] - occlusion_margin)]] = False
         observed[todo[inside]] = True
         todo = todo[~inside]
+    if len(none):
+        frustum[none], observed[none] = frustum[none[0]], observed[none[0]]
 
     def up(m):
         return cv2.resize(m.reshape(z.shape).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
