@@ -3,8 +3,19 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import sys
 from pathlib import Path
+
+# importing this module sets a script up: the repository on the path, no display for matplotlib, no onnxruntime
+# telemetry, and where the real data and weights are (../shared unless DYNSLAM_SHARED names another folder)
+REPO = Path(__file__).resolve().parents[1]
+os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))
 
 
 def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:

@@ -17,18 +17,14 @@ from __future__ import annotations
 
 import argparse
 import copy
-import os
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-os.environ.setdefault("MPLBACKEND", "Agg")
-os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
-sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))  # real data and weights (../shared)
+from _bench import SHARED  # sets up the path and the environment
+
 BONN = SHARED / "data" / "bonn_crowd_150_449_s2"
 VARIANTS = ("static", "dynamic in order", "dynamic ahead")
 COMPONENTS = ("segment", "encode", "track", "render", "check", "update", "judge", "keyframes", "map", "wait")

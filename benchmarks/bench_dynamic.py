@@ -24,19 +24,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-os.environ.setdefault("MPLBACKEND", "Agg")
-os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
-sys.path.insert(0, str(REPO))
+from _bench import REPO, SHARED  # sets up the path and the environment
 
-
-SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))  # real data and weights (../shared)
 YOLO = SHARED / "models" / "yolov8n-seg_deq_fp32.onnx"
 PERSON = REPO / "configs" / "presets" / "yolo-person.yaml"
 
