@@ -60,8 +60,8 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
     # a point some keyframe observed is in that keyframe's frustum too, so both masks are final for it: each keyframe
     # (newest first: they overlap the frame most) projects only the points not observed yet.  Every sample without
     # depth back-projects to the camera centre, one and the same point: the first of them stands for all
-    none = np.flatnonzero(z.ravel() == 0)
-    todo = np.flatnonzero(z.ravel() != 0)
+    zr = z.ravel()
+    none, todo = np.flatnonzero(zr == 0), np.flatnonzero(zr != 0)
     if len(none):
         todo = np.append(todo, none[0])
     for kf in reversed(keyframes):
