@@ -75,3 +75,23 @@ class TestReadAhead:
         time.sleep(0.2)
         assert len(seq.reads) == n_reads
         assert not any(t.name.startswith("dynslam-ahead") for t in threading.enumerate())
+
+    def test_the_worker_runs_torch_at_the_callers_thread_count(self):
+        """Torch sets a new thread's count at its first parallel operation from the process's count at
+        that moment, which the classifier lowers to 1 for a moment: the worker keeps its caller's."""
+        import torch
+
+        old = torch.get_num_threads()
+        gate = threading.Event()
+
+        def lower_then_open():
+            torch.set_num_threads(1)  # as the classifier does, before the worker's first operation
+            gate.set()
+
+        try:
+            torch.set_num_threads(2)
+            threading.Timer(0.05, lower_then_open).start()
+            with closing(iter(ReadAhead(_Seq(2), 0, 2, lambda f: gate.wait(5) and torch.get_num_threads()))) as it:
+                assert [r for _, _, r in it] == [2, 2]
+        finally:
+            torch.set_num_threads(old)

@@ -18,6 +18,8 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Iterator, Optional, Sequence
 
+from dynslam_cli.utils.threads import same_torch_threads
+
 
 class ReadAhead:
     """``for i, frame, result in ReadAhead(seq, start, stop, work): ...`` over frames ``start`` to
@@ -35,7 +37,10 @@ class ReadAhead:
     def __iter__(self) -> Iterator[tuple[int, Any, Any]]:
         if self.start >= self.stop:
             return
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynslam-ahead")
+        import torch
+
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynslam-ahead",
+                                  initializer=same_torch_threads, initargs=(torch.get_num_threads(),))
         try:
             pending: Future = pool.submit(self._load, self.start)
             for i in range(self.start, self.stop):

@@ -89,3 +89,16 @@ def set_threads(n: int) -> int:
     except Exception:  # numba absent or threads fixed: the torch setting still holds
         pass
     return n
+
+
+def same_torch_threads(n: int) -> None:
+    """A worker thread's initializer: its torch thread count (OpenMP and MKL keep one per thread) set to
+    ``n``, its creator's.  Torch gives a new thread its count lazily, at its first parallel operation,
+    from the process's count at that moment; the classifier lowers that to 1 while its tiny MLP runs
+    (``motion/classifier._few_threads``), so a worker whose first operation fell then would run, and
+    sum, on one thread for good, and a run's bits would depend on that timing (docs/experiments.md,
+    "A mapping thread")."""
+    import torch
+
+    torch.get_num_threads()  # torch's lazy initialisation of this thread, now
+    torch.set_num_threads(n)
