@@ -4,19 +4,17 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.forget import (carve, forget_departed, forget_near, forget_overtaken, forget_seen_through,
-                                       near_ids, refresh_keyframes)
+from dynslam_cli.motion.forget import forget_departed, forget_near, near_ids, refresh_keyframes
 from dynslam_cli.motion.types import CheckResult
-from dynslam_cli.slam.keyframes import Keyframe, KeyframeStore, subsample_depth
+from dynslam_cli.slam.keyframes import Keyframe, KeyframeStore
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
 
-def _keyframe(pixels, depth, pose=None, raw=None):
+def _keyframe(pixels, depth, pose=None):
     n = len(depth)
     return Keyframe(0, 0.0, np.array(pixels, np.int32), np.zeros((n, 3), np.uint8), np.array(depth, np.float32),
-                    np.zeros(n, np.int32), np.ones(n, bool), np.eye(4) if pose is None else pose,
-                    depth_raw_small=None if raw is None else subsample_depth(raw))
+                    np.zeros(n, np.int32), np.ones(n, bool), np.eye(4) if pose is None else pose)
 
 
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():
@@ -96,60 +94,6 @@ def test_forget_near_gives_what_a_distance_to_every_point_gives():
     assert 0 < sum(int(w.sum()) for w in want) < 1200  # the test holds near and far rays
 
 
-def test_forget_seen_through_marks_rays_a_later_view_sees_past():
-    intr = INTR
-    # rays on a box at 1 m (centre), on the wall at 3 m (top-left) and on the box's edge pixel
-    pixels = np.array([[31, 23], [10, 10], [40, 23]], np.int32)
-    kf = Keyframe(0, 0.0, pixels, np.zeros((3, 3), np.uint8), np.array([1.0, 3.0, 1.0], np.float32),
-                  np.zeros(3, np.int32), np.ones(3, bool), np.eye(4))
-    now = np.full((48, 64), 3.0, np.float32)  # the box has gone: the wall behind it everywhere ...
-    now[20:27, 41:48] = 0.0  # ... but for a hole right of the edge ray (within its 3 px window)
-    assert forget_seen_through([kf], now, np.eye(4), intr, margin=0.3, window=3) == 1
-    assert kf.gone.tolist() == [True, False, False] and kf.usable.tolist() == [False, True, True]
-    assert forget_seen_through([kf], now, np.eye(4), intr, margin=0.3, window=3) == 0  # already gone
-    # the box still there (same depth), or the view stopping within the margin: nothing goes
-    kf2 = Keyframe(0, 0.0, pixels, np.zeros((3, 3), np.uint8), np.array([1.0, 3.0, 1.0], np.float32),
-                   np.zeros(3, np.int32), np.ones(3, bool), np.eye(4))
-    still = np.full((48, 64), 3.0, np.float32)
-    still[15:32, 20:45] = 1.0
-    assert forget_seen_through([kf2], still, np.eye(4), intr, margin=0.3) == 0
-    assert forget_seen_through([kf2], np.full((48, 64), 1.2, np.float32), np.eye(4), intr, margin=0.3) == 0
-    # a camera moved 0.5 m to the right sees the box's point at another pixel, through to the wall
-    moved = np.eye(4)
-    moved[0, 3] = 0.5
-    assert forget_seen_through([kf2], np.full((48, 64), 3.0, np.float32), moved, intr, margin=0.3) == 2
-    assert kf2.gone.tolist() == [True, False, True]
-
-
-def test_forget_overtaken_marks_rays_whose_free_space_a_newcomer_fills():
-    intr = INTR
-    wall = np.full((48, 64), 3.0, np.float32)
-    boxed = wall.copy()
-    boxed[15:32, 20:45] = 1.5  # a box set down in front of the wall
-
-    def keyframe(saw):
-        # rays at the centre (behind where the box now stands) and at a corner, both on the wall
-        return Keyframe(0, 0.0, np.array([[31, 23], [5, 5]], np.int32), np.zeros((2, 3), np.uint8),
-                        np.array([3.0, 3.0], np.float32), np.zeros(2, np.int32), np.ones(2, bool), np.eye(4),
-                        depth_raw_small=subsample_depth(saw))
-
-    before = keyframe(wall)  # saw the wall through where the box now is: its centre ray is stale
-    assert forget_overtaken([before], boxed, np.eye(4), intr, margin=0.3, step=2) == 1
-    assert before.gone.tolist() == [True, False] and before.usable.tolist() == [False, True]
-    assert forget_overtaken([before], boxed, np.eye(4), intr, margin=0.3, step=2) == 0  # already gone
-    # a keyframe that saw the box there already (it did not arrive), or a wall that did not change
-    assert forget_overtaken([keyframe(boxed)], boxed, np.eye(4), intr, margin=0.3, step=2) == 0
-    assert forget_overtaken([keyframe(wall)], wall, np.eye(4), intr, margin=0.3, step=2) == 0
-    # the box only 0.2 m in front of the wall: within the margin, nothing changes
-    near = wall.copy()
-    near[15:32, 20:45] = 2.8
-    assert forget_overtaken([keyframe(wall)], near, np.eye(4), intr, margin=0.3, step=2) == 0
-    # without the keyframe's raw depth there is nothing to judge
-    bare = keyframe(wall)
-    bare.depth_raw_small = None
-    assert forget_overtaken([bare], boxed, np.eye(4), intr, margin=0.3, step=2) == 0
-
-
 def test_forget_departed_marks_the_rays_on_a_flagged_segment_that_left():
     # the map rendered (at half resolution) a box at 1 m in segment 1; the camera now sees the wall at 3 m there
     rendered = np.full((24, 32), 3.0, np.float32)
@@ -172,24 +116,3 @@ def test_forget_departed_marks_the_rays_on_a_flagged_segment_that_left():
     empty = CheckResult(observed_moving=np.zeros(0, bool), forward=np.zeros(0, bool), backward=np.zeros(0, bool),
                         fractions=np.zeros(0, np.float32), background_forward=0.0, background_moving=False)
     assert departed(r=empty) == 0
-
-
-def test_carve_judges_the_earlier_keyframes_from_the_newest_on_its_static_pixels():
-    wall = np.full((48, 64), 3.0, np.float32)
-    boxed = wall.copy()
-    boxed[15:32, 20:45] = 1.5
-    newest = _keyframe([[5, 5]], [3.0])
-
-    def scene():  # one keyframe saw the box (now gone), one the wall where a box now stands
-        return [_keyframe([[31, 23], [5, 5]], [1.5, 3.0]), _keyframe([[31, 23]], [3.0], raw=wall)]
-
-    kfs = scene()
-    assert carve(kfs + [newest], INTR, wall, np.ones_like(wall, bool), 0.3, 64) == 1  # seen through the box
-    assert kfs[0].gone.tolist() == [True, False] and newest.gone is None  # the newest keyframe is the judge
-    kfs = scene()
-    assert carve(kfs + [newest], INTR, boxed, np.ones_like(wall, bool), 0.3, 64) == 1  # the box arrived
-    assert kfs[1].gone.tolist() == [True]
-    kfs = scene()
-    assert carve(kfs + [newest], INTR, wall, np.zeros_like(wall, bool), 0.3, 64) == 0  # no static pixels
-    assert carve(kfs + [newest], INTR, wall, np.ones_like(wall, bool), 0.0, 64) == 0  # run.carve_margin 0: off
-    assert carve([newest], INTR, wall, np.ones_like(wall, bool), 0.3, 64) == 0  # nothing earlier

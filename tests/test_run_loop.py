@@ -72,18 +72,6 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypat
     assert _traj(out / "traj_est.txt").shape == (10, 8)
 
 
-def test_dynamic_run_with_carving_counts_the_rays_it_forgot(walker, tmp_path):
-    from dynslam_cli.config import load_config
-
-    assert load_config().run.carve_margin == 0  # off by default
-    out = tmp_path / "carve"
-    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out), "-q",
-                                   "--set", "run.carve_margin=0.05"] + TINY)
-    assert res.exit_code == 0, res.output
-    timing = json.loads((out / "timing.json").read_text())
-    assert timing["keyframe_rays_gone"] >= 0 and _traj(out / "traj_est.txt").shape == (10, 8)
-
-
 def test_dynamic_resume_gives_the_same_result(walker, tmp_path):
     full, part = tmp_path / "full", tmp_path / "part"
     r1 = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(full), "-q"] + TINY)

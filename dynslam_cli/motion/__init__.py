@@ -13,6 +13,6 @@ Public API (import from the submodules to keep `import dynslam_cli.motion` light
   ``closest_rendered`` -- what of the observation the map can judge
 * ``stayed.stayed_put`` -- instances that stayed put (never labelled moving)
 * ``forget`` -- ``refresh_keyframes`` (re-mask keyframe rays after a classifier update),
-  ``forget_departed``, ``carve`` (keyframe rays of surfaces seen gone)
+  ``forget_departed`` (keyframe rays on the surface of what the check saw leave)
 * ``prior.fit_prior`` -- ``dynslam prior fit``
 """

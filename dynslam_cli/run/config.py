@@ -30,7 +30,3 @@ class RunConfig:
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
                                "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "
                                "classifier only).", min=0)
-    carve_margin: float = opt(0.0, "Dynamic mode: at each new keyframe, earlier keyframe rays along which the scene "
-                              "changed by more than this (m) are forgotten for good, whatever the classifier says: "
-                              "the new keyframe's static depth sees through their surface point (it left), or sees "
-                              "a surface in the free space they crossed (something arrived); 0 = off.", min=0)

@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
-from dynslam_cli.motion.forget import carve, forget_departed, near_ids, refresh_keyframes
+from dynslam_cli.motion.forget import forget_departed, near_ids, refresh_keyframes
 from dynslam_cli.motion.reprojection import moving_by_reprojection
 from dynslam_cli.motion.stayed import stayed_put
 from dynslam_cli.slam.frontend import first_pose
@@ -68,7 +68,6 @@ class FrameLoop:
         self.still_frames = int(cfg.run.still_frames)
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
-        self.carve_margin = float(cfg.run.carve_margin)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -147,7 +146,6 @@ class FrameLoop:
             kf = self.slam.keyframes[-1]
             kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
             self.slam.keyframes.register_instances(kf.frame_id, *self.mm.keyframe_instances(inst))
-            carve(self.slam.keyframes, self.slam.intr, frame.depth, inst.static_mask, self.carve_margin, self.width)
         fid = self.slam.n_frames - 1
         if self.slam.keyframes.landmark_keyframes.index_of(fid) >= 0 and not self.slam.keyframes.has_instances(fid):
             # a backend keyframe without neural-map rays: its landmarks carry these instance ids

@@ -327,7 +327,7 @@ class _Run:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
             timing["classifier_updates"] = len(loop.records)
             timing["retracked_frames"] = sum(1 for r in loop.records if r.get("retracked"))
-            # rays forgotten for good (run.forget_radius, run.carve_margin), counted from the keyframes
+            # rays forgotten for good (run.forget_radius), counted from the keyframes
             timing["keyframe_rays_gone"] = int(sum(int(k.gone.sum()) for k in slam.keyframes if k.gone is not None))
         paths["timing"] = write_json_atomic(out / "timing.json", timing)
         if slam.events:
