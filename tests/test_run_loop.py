@@ -124,3 +124,20 @@ def test_dynamic_run_at_two_threads_equals_the_frames_in_order(walker, tmp_path)
     assert np.allclose(_traj(out / "traj_unsmoothed.txt")[:, 1:4], traj[:, :3, 3], atol=1e-6)
     updates = [json.loads(ln) for ln in (out / "classifier_updates.jsonl").read_text().splitlines()]
     assert [u["labels"] for u in updates] == [r["labels"] for r in loop.records]
+
+
+def test_dynamic_run_checks_every_nth_frame(walker, tmp_path):
+    """motion.check_every=2: the check (its render, written beside the masks) runs on every 2nd frame after the
+    warm-up; the classifier still labels every frame (a mask per frame)."""
+    from dynslam_cli.run.loop import CHECK_WARMUP
+
+    out = tmp_path / "every2"
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out), "-q",
+                                   "--save-masks", "--set", "motion.check_every=2"] + TINY)
+    assert res.exit_code == 0, res.output
+    stamps = [ln.split()[0] for ln in (walker / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert sorted(p.stem for p in (out / "masks").glob("*.png")) == sorted(stamps)
+    checked = sorted(stamps.index(p.name[: -len("_depth.png")]) for p in (out / "renders").glob("*_depth.png"))
+    assert checked == [i for i in range(len(stamps)) if i >= CHECK_WARMUP and i % 2 == 0]
+    for ln in (out / "classifier_updates.jsonl").read_text().splitlines():
+        assert json.loads(ln)["frame"] in checked

@@ -5,7 +5,8 @@ pixels → render the map at the tracked pose and run the bidirectional inconsis
 the backend's vote on the instances whose keypoints stopped reprojecting (``reprojection``) → on a
 contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
 map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
-the keyframe's rays.  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
+the keyframe's rays.  The check and what follows it run on every ``motion.check_every``-th frame
+(every frame by default, as in the paper).  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
 classify, check and update), ``checkable`` (what the map can judge), ``reprojection`` (the
 backend's vote), ``stayed`` (stayed put) and ``forget`` (keyframe rays masked or gone); this loop
 only drives them.  Static mode is the same
@@ -91,7 +92,9 @@ class FrameLoop:
         t_render = t_judge = t_keyframes = 0.0
         record = None
         retracked = False
-        if inst is not None and self.slam.n_frames > max(1, CHECK_WARMUP):  # a one-frame map judges nothing
+        checked = (inst is not None and self.slam.n_frames > max(1, CHECK_WARMUP)  # a one-frame map judges nothing
+                   and (self.slam.n_frames - 1) % self.mm.m.check_every == 0)  # on every check_every-th frame
+        if checked:
             t1 = time.perf_counter()
             scale = min(1.0, self.mm.m.check_width / float(self.width))
             r_depth, r_rgb = self.slam.render(tr.pose_c2w, scale=scale)
