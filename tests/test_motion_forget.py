@@ -11,10 +11,10 @@ from dynslam_cli.slam.keyframes import Keyframe, KeyframeStore
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
 
-def _keyframe(pixels, depth, pose=None):
+def _keyframe(pixels, depth):
     n = len(depth)
     return Keyframe(0, 0.0, np.array(pixels, np.int32), np.zeros((n, 3), np.uint8), np.array(depth, np.float32),
-                    np.zeros(n, np.int32), np.ones(n, bool), np.eye(4) if pose is None else pose)
+                    np.zeros(n, np.int32), np.ones(n, bool), np.eye(4))
 
 
 def test_refresh_keyframes_masks_rays_of_dynamic_instances():

@@ -6,10 +6,10 @@ the backend's vote on the instances whose keypoints stopped reprojecting (``repr
 contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
 map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
 the keyframe's rays.  The check and what follows it run on every ``motion.check_every``-th frame
-(every frame by default, as in the paper).  The pieces live in ``dynslam_cli/motion/``: ``module`` (segment, encode,
-classify, check and update), ``checkable`` (what the map can judge), ``reprojection`` (the
-backend's vote), ``stayed`` (stayed put) and ``forget`` (keyframe rays masked or gone); this loop
-only drives them.  Static mode is the same
+(every frame by default, as in the paper).  The pieces live in ``dynslam_cli/motion/``: ``module``
+(segment, encode, classify, check and update), ``checkable`` (what the map can judge),
+``reprojection`` (the backend's vote), ``stayed`` (stayed put) and ``forget`` (keyframe rays masked
+or gone); this loop only drives them.  Static mode is the same
 loop without a motion module: every pixel is static, nothing is checked or forgotten.
 """
 
