@@ -18,10 +18,10 @@ if str(REPO) not in sys.path:
 SHARED = Path(os.environ.get("DYNSLAM_SHARED", REPO.parent / "shared"))
 
 
-def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:
-    """Run ``spec`` with config overrides ``sets`` into ``out`` unless a completed run is already
-    there (``fresh``: delete and redo it; a failed or interrupted run there is replaced); returns the
-    run's run.json."""
+def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool, preset: str | None = None) -> dict:
+    """Run ``spec`` with config overrides ``sets`` (over the named ``preset``, if any) into ``out`` unless
+    a completed run is already there (``fresh``: delete and redo it; a failed or interrupted run there is
+    replaced); returns the run's run.json."""
     from dynslam_cli.config.resolve import resolve_config
     from dynslam_cli.run.runner import run_sequence
 
@@ -29,7 +29,7 @@ def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool) -> dict:
     if fresh and out.exists():
         shutil.rmtree(out)
     if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
-        cfg = resolve_config(spec, None, sets)
+        cfg = resolve_config(spec, None, sets, preset=preset)
         run_sequence(spec, cfg, out_dir=out, overwrite=True, progress=True)
     return json.loads(done.read_text())
 
