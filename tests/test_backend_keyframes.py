@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from dynslam_cli.backend.features import Keypoints
+from dynslam_cli.backend.features import Keypoints, project
 from dynslam_cli.backend.keyframes import LandmarkKeyframes
+from dynslam_cli.backend.tracking import Camera
 
 
 def _keypoints(n: int) -> Keypoints:
@@ -117,3 +118,62 @@ class TestInView:
 
     def test_empty(self):
         assert LandmarkKeyframes().in_view(np.eye(4), self.K, 100, 100, n=5, min_count=1) == []
+
+
+class TestAdjustAll:
+    CAM = Camera(300.0, 300.0, 160.0, 120.0, 320, 240, 300.0 * 0.08)
+
+    def _scene(self, n_kf=5, seed=0):
+        """Keyframes moving sideways (the first at its true pose, the others perturbed by 2 cm) over
+        120 static points, and 60 points of instance 5 that move 5 cm a keyframe; every point made by
+        keyframe 0 and observed by every keyframe that sees it.  Returns the store and the true poses."""
+        rng = np.random.default_rng(seed)
+        truth = [_pose(0.1 * k) for k in range(n_kf)]
+        X = np.stack([rng.uniform(-1.0, 1.5, 180), rng.uniform(-0.8, 0.8, 180), rng.uniform(2.0, 4.0, 180)], 1)
+        origin = np.r_[np.zeros(120, np.int64), np.full(60, 5)]
+        kfs = LandmarkKeyframes()
+        for k, T in enumerate(truth):
+            start = T.copy()
+            if k:
+                start[:3, 3] += rng.normal(0, 0.02, 3)
+            kfs.add(10 * k, start)
+            Xk = X + np.where(origin[:, None] == 5, [0.05 * k, 0.0, 0.0], 0.0)  # where each point is now
+            uv, z = project(T, Xk, self.CAM.K)
+            kp = Keypoints(uv=uv + rng.normal(0, 0.2, uv.shape), des=np.zeros((len(X), 32), np.uint8),
+                           octave=np.zeros(len(X), np.int64), depth=z, dsig=0.012 * z * z)
+            if k == 0:
+                kfs.landmarks.create(0, kp, X.copy(), np.zeros(3), origin)
+            else:
+                kfs.landmarks.observe(k, np.arange(len(X)), kp)
+        return kfs, truth
+
+    def _error(self, kfs, truth) -> float:
+        return max(np.linalg.norm(kfs.poses[k][:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+
+    def test_recovers_the_poses_without_the_moving_landmarks(self):
+        kfs, truth = self._scene()
+        first = kfs.poses[0].copy()
+        kfs.forget(0, [5])  # instance 5 found to move: its landmarks are left out
+        moving = kfs.landmarks.pos[120:].copy()
+        before = self._error(kfs, truth)
+        res = kfs.adjust_all(self.CAM, huber=2.8)
+        assert res is not None and set(res.poses) == {1, 2, 3, 4}
+        assert np.array_equal(kfs.poses[0], first)  # the gauge
+        assert before > 0.01 and self._error(kfs, truth) < 0.004
+        assert np.array_equal(kfs.landmarks.pos[120:], moving)  # not adjusted
+
+    def test_landmarks_that_move_unflagged_pull_the_poses(self):
+        kfs, truth = self._scene()
+        kfs.adjust_all(self.CAM, huber=2.8)
+        flagged, _ = self._scene()
+        flagged.forget(0, [5])
+        flagged.adjust_all(self.CAM, huber=2.8)
+        assert self._error(flagged, truth) < self._error(kfs, truth)
+
+    def test_nothing_to_adjust(self):
+        kfs, _ = self._scene(n_kf=1)
+        assert kfs.adjust_all(self.CAM, huber=2.8) is None
+        empty = LandmarkKeyframes()
+        empty.add(0, _pose(0.0))
+        empty.add(5, _pose(0.1))
+        assert empty.adjust_all(self.CAM, huber=2.8) is None

@@ -273,6 +273,10 @@ class Backend:
         out[has] = self.kf_pose[self.frame_ref[has]] @ self.frame_rel[has]
         return out
 
+    def finish(self):
+        """After the last frame: all keyframes bundle-adjusted together (:meth:`LandmarkKeyframes.adjust_all`)."""
+        return self.keyframes.adjust_all(self.cam, self.cfg.huber_px)
+
     def refined_trajectory(self) -> tuple[np.ndarray, int]:
         """:meth:`trajectory` with every frame but the keyframes solved again against the finished
         map (:func:`~dynslam_cli.backend.refine.refine_poses`), and how many were solved again."""

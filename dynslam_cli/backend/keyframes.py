@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dynslam_cli.backend.bundle import BundleResult, local_bundle_adjustment
 from dynslam_cli.backend.features import SCALE, in_image, project
 from dynslam_cli.backend.landmarks import LandmarkMap
 
@@ -16,6 +17,9 @@ from dynslam_cli.backend.landmarks import LandmarkMap
 # and seen from a direction within 60 degrees of the keyframe's.
 IN_VIEW_DISTANCE_RATIO = SCALE ** 4
 IN_VIEW_MIN_COS = 0.5
+# Levenberg-Marquardt iterations of the two passes of the bundle adjustment of every keyframe after the last frame
+# (the local one's are 5 and 10).
+ADJUST_ALL_ITERS = (10, 20)
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -88,6 +92,23 @@ class LandmarkKeyframes:
         counts[skip] = 0
         order = np.lexsort((-np.arange(len(self)), -counts))  # most first; ties: newest first
         return [int(k) for k in order[:n] if counts[k] >= max(1, min_count)]
+
+    def adjust_all(self, cam, huber: float) -> BundleResult | None:
+        """Bundle adjustment of every keyframe but the first (the gauge) and every landmark in use
+        (alive, not found to move), as the local one does it (camera ``cam``, Huber width ``huber``
+        px); the poses and positions are replaced.  None with fewer than two keyframes or no landmark."""
+        lm = self.landmarks
+        ids = np.flatnonzero(lm.alive & ~lm.moving)
+        if len(self) < 2 or len(ids) == 0:
+            return None
+        poses = {k: self._poses[k].copy() for k in range(len(self))}
+        res = local_bundle_adjustment(cam, poses, list(range(1, len(self))), [0], ids, lm.pos[ids], lm.obs_kf,
+                                      lm.obs_lm, lm.obs_uv, lm.obs_depth, lm.obs_octave, lm.obs_dsig, huber,
+                                      iters=ADJUST_ALL_ITERS)
+        for k, T in res.poses.items():
+            self.set_pose(k, T)
+        lm.pos[res.ids] = res.pos
+        return res
 
     def forget(self, frame_index: int, instance_ids) -> int:
         """Leave out of tracking and bundle adjustment the landmarks that the keyframe of frame

@@ -91,8 +91,12 @@ class SLAM(SlamState):
                            (time.perf_counter() - t0) * 1000)
 
     def finish(self) -> Optional[MapResult]:
-        """After the last frame: mapping.final_iters more bundle adjustment iterations over all
-        keyframes and the last tracked frame (the periodic BA's code path); None when off."""
+        """After the last frame: the backend's bundle adjustment of every keyframe (which moves the
+        frames tracked against them too), then mapping.final_iters more bundle adjustment iterations
+        of the neural map over all keyframes and the last tracked frame (the periodic BA's code path;
+        its MapResult, None when off)."""
+        if self.backend is not None:
+            self.backend.finish()
         return self.mapper.finish()
 
     def ba_ray_indices(self, cur, iters: int, n_rays: int, use_keyframes: bool = True):
