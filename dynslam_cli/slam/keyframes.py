@@ -37,7 +37,7 @@ class Keyframe:
     # of each ray (None = not kept); a ray is unusable when any of its ids is dynamic
     near_ids: np.ndarray | None = None
     # the keyframe's whole depth map (movers included) every DEPTH_STRIDE pixels (float16; None = not
-    # kept): what the camera saw, for motion.stayed.stationary_instances and motion.forget.forget_overtaken
+    # kept): what the camera saw, for motion.stayed.stationary_instances
     depth_raw_small: np.ndarray | None = None
     # (M,) bool: rays whose surface point a later frame saw gone (a departed object; motion.forget); never usable
     gone: np.ndarray | None = None
