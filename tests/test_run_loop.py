@@ -141,3 +141,33 @@ def test_dynamic_run_checks_every_nth_frame(walker, tmp_path):
     assert checked == [i for i in range(len(stamps)) if i >= CHECK_WARMUP and i % 2 == 0]
     for ln in (out / "classifier_updates.jsonl").read_text().splitlines():
         assert json.loads(ln)["frame"] in checked
+
+
+def test_dynamic_run_maps_with_the_mask_from_before_the_check(walker, tmp_path, monkeypatch):
+    """The map and the backend's keyframe are given the frame's static mask from before its check (what the check
+    finds reaches the keyframe at the next classifier update): here every check newly masks the left quarter."""
+    from dynslam_cli.motion.module import MotionModule
+    from dynslam_cli.slam.system import SLAM
+
+    before_check, mapped = {}, {}
+    check, map_ = MotionModule.check_and_update, SLAM.map
+
+    def check_masking_more(self, frame, inst, *a, **k):
+        before_check[inst.frame_index] = inst.static_mask.copy()
+        record = check(self, frame, inst, *a, **k)
+        mask = inst.static_mask.copy()
+        mask[:, : mask.shape[1] // 4] = False
+        inst.static_mask = mask
+        return record
+
+    def spy_map(self, frame, mask=None, instance_ids=None):
+        mapped[self.n_frames - 1] = None if mask is None else np.asarray(mask).copy()
+        return map_(self, frame, mask, instance_ids)
+
+    monkeypatch.setattr(MotionModule, "check_and_update", check_masking_more)
+    monkeypatch.setattr(SLAM, "map", spy_map)
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(tmp_path / "d"),
+                                   "-q"] + TINY)
+    assert res.exit_code == 0, res.output
+    assert len(before_check) >= 5
+    assert all(np.array_equal(mapped[i], m) and m[:, 0].any() for i, m in before_check.items())

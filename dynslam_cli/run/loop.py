@@ -4,13 +4,14 @@ Per frame: segment, encode and classify the instances (motion module) → track 
 pixels → render the map at the tracked pose and run the bidirectional inconsistency check, beside
 the backend's vote on the instances whose keypoints stopped reprojecting (``reprojection``) → on a
 contradiction update the classifier (with replay) and refresh every keyframe's usable rays (the
-map forgets what moved) → map / bundle-adjust with the static mask, storing the instance ids of
-the keyframe's rays.  The check and what follows it run on every ``motion.check_every``-th frame
+map forgets what moved) → map / bundle-adjust with the frame's static mask from before its check
+(what the check found reaches the keyframe at the next update), storing the instance ids of the
+keyframe's rays.  The check and what follows it run on every ``motion.check_every``-th frame
 (every frame by default, as in the paper).  The pieces live in ``dynslam_cli/motion/``: ``module``
 (segment, encode, classify, check and update), ``checkable`` (what the map can judge),
 ``reprojection`` (the backend's vote), ``stayed`` (stayed put) and ``forget`` (keyframe rays masked
-or gone); this loop only drives them.  Static mode is the same
-loop without a motion module: every pixel is static, nothing is checked or forgotten.
+or gone); this loop only drives them.  Static mode is the same loop without a motion module:
+every pixel is static, nothing is checked or forgotten.
 """
 
 from __future__ import annotations
@@ -140,6 +141,10 @@ class FrameLoop:
             rec["retracked"] = retracked
             self.records.append(rec)
         n_kf = len(self.slam.keyframes)
+        # The map and the backend's keyframe take the mask the frame was classified with before its check, not the
+        # one the check left: the check's verdict reaches this keyframe at the next classifier update (forget.
+        # refresh_keyframes) and every later frame's mask.  Mapping with the check's mask, or with what both call
+        # static, was measured worse on synth `tracking` at 5 and 4 run seeds of 5 (docs/experiments.md).
         mr = self.slam.map(frame, static, None if inst is None else inst.ids)
         if inst is None:
             return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,

@@ -234,8 +234,8 @@ class Frontend:
                            (time.perf_counter() - t0) * 1000, reason)
 
     def set_mask(self, cur: CurrentFrame, mask: Optional[np.ndarray]) -> None:
-        """The tracked frame's final static mask (map() trains on it): its usable pixels, and the
-        next frame's ICP reference, follow it."""
+        """The static mask map() trains on (the loop's: the frame's mask from before its check): the
+        frame's usable pixels, and the next frame's ICP reference, follow it."""
         if mask is not None and (cur.mask is None or not np.array_equal(np.asarray(mask, bool), cur.mask)):
             cur.valid = valid_pixels(cur.depth_np, mask, self.s.cfg.tracking.ignore_border)
             cur.mask = np.asarray(mask, bool)

@@ -82,7 +82,7 @@ class Mapper:
         mc = s.cfg.mapping
         t0 = time.perf_counter()
         backend_keyframe = False
-        if s.backend is not None:  # the keyframe the backend found due, with the final static mask
+        if s.backend is not None:  # the keyframe the backend found due, with the mask map() was given
             backend_keyframe, _, refined = s.backend.commit(cur.mask, instance_ids)
             if backend_keyframe:
                 s.sync_backend_poses()
