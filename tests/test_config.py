@@ -112,7 +112,7 @@ def test_presets_load_and_differ_where_they_should():
     assert base.tracking.backend and not coslam.tracking.backend and not paper.tracking.backend
     assert coslam.tracking.icp_init and paper.tracking.icp_init and coslam.mapping.lr_pose > 0
     assert (coslam.run.mode, paper.run.mode, base.run.mode) == ("static", "dynamic", "dynamic")
-    assert paper.run.still_frames == 0 and paper.run.forget_radius == 0 and base.run.still_frames == 20
+    assert paper.run.still_seconds == 0 and paper.run.forget_radius == 0 and base.run.still_seconds == 0.67
     assert coslam.map == base.map and coslam.motion == base.motion
     # a preset sits between the dataset file and --config / --set
     f = Path(__file__).parent / "_preset_probe.yaml"

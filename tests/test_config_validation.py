@@ -75,7 +75,7 @@ def test_every_shipped_config_and_sequence_section_is_valid():
     (["map.w_sdf=.inf"], "config: map.w_sdf must be >= 0 (got inf)"),
     (["run.device=gpu"], "config: run.device must be one of auto, cpu, cuda (got 'gpu')"),
     (["motion.encoder=resnet"], "config: motion.encoder must be one of effnet-lite0, onnx, clip, dino, blip, color-hist"),
-    (["run.still_frames=1"], "config: run.still_frames must be >= 0 and not 1 (0 = off, else two or more) (got 1)"),
+    (["run.still_seconds=-1"], "config: run.still_seconds must be >= 0 (got -1.0)"),
     (["synth.width=4"], "config: synth.width must be in [8, 4096] (got 4)"),
     # cross-field and list rules
     (["data.intrinsics=[500, 0, 320, 240]"], "config: data.intrinsics must be null or 4 numbers fx, fy, cx, cy"),
@@ -94,7 +94,7 @@ def test_invalid_values_are_one_line_errors(override, message):
 
 def test_sentinels_and_boundaries_pass():
     cfg = load_config(overrides=["mapping.lr_pose=0", "run.threads=0", "run.threads=4", "synth.depth_holes=0",
-                                 "mapping.keyframe_ray_fraction=1", "run.still_frames=2", "map.near=0"])
+                                 "mapping.keyframe_ray_fraction=1", "run.still_seconds=0", "map.near=0"])
     assert cfg.mapping.lr_pose == 0 and cfg.run.threads == 4 and cfg.map.near == 0
 
 

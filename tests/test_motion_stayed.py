@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.stayed import stationary_instances, stayed_put
+from dynslam_cli.motion.stayed import RATE_FRAMES, stationary_instances, stayed_put, window_frames
 from dynslam_cli.slam.keyframes import subsample_depth
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
@@ -50,7 +50,7 @@ def test_stayed_put_window_and_tolerance_with_and_without_the_centre_feature():
     def stayed(d, centre, tol=0.0, frames=10):  # seen from frame 5, t_d 0.3 m
         return stayed_put(d, ids, np.eye(4), INTR, kfs, 5, frames, tol, 0.3, centre)
 
-    # the stayed-put test applies with and without the centre feature; run.still_frames 0 turns it off
+    # the stayed-put test applies with and without the centre feature; a window of 0 frames turns it off
     assert stayed(depth, False).tolist() == [True]
     assert stayed(depth, True).tolist() == [True]
     assert stayed(depth, False, frames=0) is None
@@ -67,3 +67,27 @@ def test_stayed_put_window_and_tolerance_with_and_without_the_centre_feature():
     assert stayed(depth, False, frames=4).tolist() == [True]
     assert stayed(depth, True, frames=4).tolist() == [False]
     assert stayed(depth, True, frames=3) is None
+
+
+class TestWindowFrames:
+    """run.still_seconds in frames at the sequence's frame rate."""
+
+    def test_known_values(self):
+        assert window_frames(0.67, np.arange(40) / 30.0) == 20
+        assert window_frames(0.67, np.arange(40) / 15.0) == 10  # every second frame of the same camera
+        assert window_frames(0.67, np.arange(40) / 60.0) == 40
+
+    def test_jittered_stamps_and_a_dropped_frame(self):
+        rng = np.random.default_rng(0)
+        stamps = np.cumsum(1 / 30.0 + rng.uniform(-0.002, 0.002, 40))
+        stamps = np.delete(stamps, 20)  # a dropped frame: the median interval stays the rate's
+        assert window_frames(0.67, stamps) == 20
+
+    def test_off_and_before_two_frames(self):
+        assert window_frames(0.0, np.arange(40) / 30.0) == 0
+        assert window_frames(0.67, [0.5]) == 0 and window_frames(0.67, []) == 0
+        assert window_frames(0.67, [1.0, 1.0]) == 0  # no interval: no rate
+
+    def test_the_rate_follows_the_last_frames(self):
+        stamps = np.concatenate([np.arange(100) / 15.0, 100 / 15.0 + np.arange(1, RATE_FRAMES + 1) / 30.0])
+        assert window_frames(0.67, stamps) == 20

@@ -15,6 +15,9 @@ from dynslam_cli.geometry.camera import pixel_dirs, transform
 from dynslam_cli.motion.checkable import project_into
 from dynslam_cli.slam.keyframes import DEPTH_STRIDE
 
+# The frame rate that turns ``run.still_seconds`` into frames is measured over this many of the last frames.
+RATE_FRAMES = 31
+
 
 def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray, intr, keyframes,
                          tolerance: float = 0.3, min_seen: float = 0.5, min_agree: float = 0.8,
@@ -64,14 +67,25 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     return ok & (looked >= 2)
 
 
+def window_frames(seconds: float, stamps) -> int:
+    """How many frames ``seconds`` span at the sequence's frame rate: the median interval between the
+    last :data:`RATE_FRAMES` ``stamps`` (s; the frames seen so far); 0 before two frames."""
+    t = np.asarray(stamps[-RATE_FRAMES:], np.float64)
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    if seconds <= 0 or len(dt) == 0:
+        return 0
+    return int(round(float(seconds) / float(np.median(dt))))
+
+
 def stayed_put(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, frame_id: int,
                still_frames: int, still_tolerance: float, depth_threshold: float,
                centre_feature: bool) -> Optional[np.ndarray]:
     """Instances of frame ``frame_id`` whose points stayed within ``still_tolerance`` (``run.still_tolerance``;
-    0 = ``depth_threshold``) of the depth every keyframe of the last ``still_frames`` (``run.still_frames``)
-    frames saw there (see :func:`stationary_instances`); None when that window is under 2 frames
-    (``run.still_frames`` 0 turns it off).  With ``centre_feature`` (``motion.centre_feature``), where
-    'static' is learnt at the place only, the window is half as long."""
+    0 = ``depth_threshold``) of the depth every keyframe of the last ``still_frames`` frames saw there (see
+    :func:`stationary_instances`; the caller turns ``run.still_seconds`` into frames with :func:`window_frames`);
+    None when that window is under 2 frames (``run.still_seconds`` 0 turns it off).  With ``centre_feature``
+    (``motion.centre_feature``), where 'static' is learnt at the place only, the window is half as long."""
     frames = still_frames // 2 if centre_feature else still_frames
     if frames < 2:
         return None

@@ -19,12 +19,12 @@ class RunConfig:
     mesh_resolution: float = opt(0.02, "Marching-cubes voxel size (m).", above=0)
     results_root: str = opt("results/runs", "Folder under which run folders are created.")
     keep_checkpoint: bool = opt(False, "Keep checkpoint.pt after a completed run (it is removed by default).")
-    still_frames: int = opt(20, "Dynamic mode: an instance whose 3-D points every keyframe of the last this-many "
-                            "frames saw at the same depth (within run.still_tolerance) has stayed put and is labelled "
-                            "static (with motion.centre_feature over half as many frames, at its place); 0 = off.",
-                            min=0, check=(lambda v: v != 1, "not 1 (0 = off, else two or more)"))
+    still_seconds: float = opt(0.67, "Dynamic mode: an instance whose 3-D points every keyframe of the last this-many "
+                               "seconds (in frames at the sequence's frame rate) saw at the same depth (within "
+                               "run.still_tolerance) has stayed put and is labelled static (with "
+                               "motion.centre_feature over half as long, at its place); 0 = off.", min=0)
     still_tolerance: float = opt(0.05, "Dynamic mode: how close (m) an instance's points must lie to the depth the "
-                                 "keyframes saw for run.still_frames to count it as stayed put; 0 = "
+                                 "keyframes saw for run.still_seconds to count it as stayed put; 0 = "
                                  "motion.depth_threshold.", min=0)
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "

@@ -27,7 +27,7 @@ import numpy as np
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
 from dynslam_cli.motion.forget import forget_departed, near_ids, refresh_keyframes
 from dynslam_cli.motion.reprojection import moving_by_reprojection
-from dynslam_cli.motion.stayed import stayed_put
+from dynslam_cli.motion.stayed import stayed_put, window_frames
 from dynslam_cli.slam.frontend import first_pose
 from dynslam_cli.utils.io import atomic_path, write_text_atomic
 
@@ -67,7 +67,7 @@ class FrameLoop:
         self.mask_dir = mask_dir if self.mm is not None else None
         self.records: list[dict] = []
         self.width = int(intrinsics.width)
-        self.still_frames = int(cfg.run.still_frames)
+        self.still_seconds = float(cfg.run.still_seconds)
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
@@ -109,8 +109,9 @@ class FrameLoop:
             if CHECK_RADIUS > 0:
                 r_depth = closest_rendered(r_depth, judged.depth, CHECK_RADIUS)
             before = inst.static_mask.copy()
+            still_frames = window_frames(self.still_seconds, self.slam.timestamps)
             still = stayed_put(frame.depth, inst.ids, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
-                               self.slam.n_frames - 1, self.still_frames, self.still_tolerance,
+                               self.slam.n_frames - 1, still_frames, self.still_tolerance,
                                self.mm.m.depth_threshold, bool(self.mm.m.centre_feature))
             evidence = self.slam.reprojection_evidence()
             moved = None if evidence is None else moving_by_reprojection(inst.ids, *evidence, inst.count)
