@@ -108,7 +108,6 @@ class FrameLoop:
             judged = dataclasses.replace(frame, depth=judged_depth)
             if CHECK_RADIUS > 0:
                 r_depth = closest_rendered(r_depth, judged.depth, CHECK_RADIUS)
-            before = inst.static_mask.copy()
             still_frames = window_frames(self.still_seconds, self.slam.timestamps)
             still = stayed_put(frame.depth, inst.ids, tr.pose_c2w, self.slam.intr, self.slam.keyframes,
                                self.slam.n_frames - 1, still_frames, self.still_tolerance,
@@ -123,7 +122,7 @@ class FrameLoop:
             t_judge += (time.perf_counter() - t1) * 1e3
             if record is not None and RETRACK_FRACTION > 0:
                 valid = np.asarray(frame.depth) > 0
-                newly = int((before & ~inst.static_mask & valid).sum())
+                newly = int((static & ~inst.static_mask & valid).sum())  # static: the mask before the check
                 if newly > RETRACK_FRACTION * max(1, int(valid.sum())):
                     tr = self.slam.retrack(frame, inst.static_mask)
                     t_track += tr.ms
