@@ -13,6 +13,7 @@ from test_data_helpers import data_cfg, make_folder, quat_z
 from dynslam_cli.config import load_config
 from dynslam_cli.data.open import open_sequence
 from dynslam_cli.data.types import Frame, Intrinsics
+from dynslam_cli.errors import DynslamError
 
 BONN_K = [542.822841, 542.576870, 315.593520, 237.756098]
 
@@ -132,8 +133,6 @@ def test_generic_folder_lazy_decode_and_cut(tmp_path: Path):
     assert f.index == 1 and tuple(f.rgb[0, 0]) == (3, 0, 255)  # RGB order, source frame 3
     assert f.depth[1, 1] == 0.0 and f.depth[5, 2] == pytest.approx(1.3) and f.depth[5, 30] == pytest.approx(3.0)
     assert np.allclose(f.pose_c2w[:3, 3], [0.3, 0, 0])
-    from dynslam_cli.errors import DynslamError
-
     with pytest.raises(DynslamError, match=r"0\.500000\.png.*frame 2"):
         seq[2]
     with pytest.raises(IndexError):
@@ -230,6 +229,41 @@ def test_synth_name_renders_once_into_cache(tmp_path: Path, monkeypatch):
     with pytest.raises(RuntimeError):
         open_sequence("synth/other", cfg2)
     assert sorted(p.name for p in (tmp_path / "synth").iterdir()) == ["walker_16x12_4f_s3"]
+
+
+def test_synth_sensor_settings_name_their_own_scene(tmp_path: Path, monkeypatch):
+    import json
+    import types
+
+    calls = []
+
+    def render_preset(preset, out_dir, cfg, frames=None, progress=True):
+        calls.append(cfg.depth_noise)
+        make_folder(Path(out_dir), n=frames, w=cfg.width, h=cfg.height,
+                    synth={"intrinsics": [20.0, 20.0, 8.0, 6.0], "preset": preset,
+                           "sensor": {"depth_noise": cfg.depth_noise, "depth_holes": cfg.depth_holes,
+                                      "rgb_noise": cfg.rgb_noise}})
+
+    fake = types.ModuleType("dynslam_cli.synth.render")
+    fake.render_preset = render_preset
+    monkeypatch.setitem(sys.modules, "dynslam_cli.synth.render", fake)
+    base = [f"data.root={tmp_path}", "synth.width=16", "synth.height=12", "synth.frames=2"]
+    plain = open_sequence("synth/static", load_config("synth", "static", overrides=base))
+    quiet = open_sequence("synth/static", load_config("synth", "static", overrides=base + [
+        "synth.depth_noise=0", "synth.rgb_noise=0.5"]))
+    assert plain.path.name == "static_16x12_2f_s0" and quiet.path.name == "static_16x12_2f_s0_dn0_cn0.5"
+    assert calls == [0.002, 0.0]  # a scene of its own, not the cached noisy one
+    open_sequence("synth/static", load_config("synth", "static", overrides=base + ["synth.depth_noise=0.0",
+                                                                                   "synth.rgb_noise=0.5"]))
+    assert len(calls) == 2  # the same settings find their scene again
+    # a cached folder that says it was rendered otherwise (an older version's, edited by hand) is refused
+    meta = json.loads((plain.path / "synth.json").read_text())
+    meta["sensor"]["depth_holes"] = 0.2
+    (plain.path / "synth.json").write_text(json.dumps(meta))
+    with pytest.raises(DynslamError, match=r"static_16x12_2f_s0 holds synth/static rendered with depth_holes 0.2, "
+                                           r"not synth.depth_holes 0.01"):
+        open_sequence("synth/static", load_config("synth", "static", overrides=base))
+    assert len(calls) == 2  # and left as it was
 
 
 def test_named_sequences_under_root(tmp_path: Path, monkeypatch):
