@@ -41,30 +41,26 @@ SENSOR_TAGS = (("depth_noise", "dn"), ("depth_holes", "dh"), ("rgb_noise", "cn")
 
 def synth_cache_dir(preset: str, cfg, root: Path | None = None) -> Path:
     """The folder ``synth/PRESET`` is rendered into and read from with ``cfg.synth``'s settings:
-    ``PRESET_WxH_Nf_sSEED``, then ``_dnX``, ``_dhX``, ``_cnX`` for sensor settings off their defaults."""
+    ``PRESET_WxH_Nf_sSEED``, then ``_dnX``, ``_dhX``, ``_cnX`` for sensor settings off their defaults.  A
+    scene already there whose ``synth.json`` says it was rendered with other sensor settings (a folder
+    from an older version, renamed or edited by hand) is refused."""
+    from dynslam_cli.data.tum import read_synth_json
     from dynslam_cli.synth.config import SynthConfig
 
     s = cfg.synth
     root = data_root(cfg) if root is None else Path(root)
     default = SynthConfig()
     tags = "".join(f"_{tag}{getattr(s, key):g}" for key, tag in SENSOR_TAGS if getattr(s, key) != getattr(default, key))
-    return root / "synth" / f"{preset}_{s.width}x{s.height}_{s.frames}f_s{s.seed}{tags}"
-
-
-def check_synth_cache(folder: Path, preset: str, cfg) -> None:
-    """Refuse a cached scene whose ``synth.json`` says it was rendered with other sensor settings than
-    ``cfg.synth`` (a folder from an older version, renamed or edited by hand); one without them passes."""
-    import json
-
-    try:
-        sensor = json.loads((Path(folder) / "synth.json").read_text()).get("sensor") or {}
-    except (OSError, ValueError, AttributeError):
-        return  # read_folder reports a missing or broken synth.json
-    for key, _ in SENSOR_TAGS:
-        want, got = float(getattr(cfg.synth, key)), sensor.get(key)
-        if isinstance(got, (int, float)) and float(got) != want:
-            raise DynslamError(f"{folder} holds synth/{preset} rendered with {key} {float(got):g}, not synth.{key} "
-                               f"{want:g}; delete the folder to render it again, or give the setting it was made with")
+    out = root / "synth" / f"{preset}_{s.width}x{s.height}_{s.frames}f_s{s.seed}{tags}"
+    if (out / "rgb.txt").is_file() and (out / "synth.json").is_file():
+        sensor = read_synth_json(out / "synth.json").get("sensor") or {}
+        for key, _ in SENSOR_TAGS:
+            want, got = float(getattr(s, key)), sensor.get(key)
+            if isinstance(got, (int, float)) and float(got) != want:  # not a number: read_folder says so
+                raise DynslamError(f"{out} holds synth/{preset} rendered with {key} {float(got):g}, not synth.{key} "
+                                   f"{want:g}; delete the folder to render it again, or give the setting it was "
+                                   "made with")
+    return out
 
 
 def render_synth(preset: str, cfg, out_dir: Path, progress: bool = True) -> Path:
@@ -121,8 +117,6 @@ def resolve_path(spec: str, cfg, progress: bool = True) -> tuple[SequenceId, Pat
         out = synth_cache_dir(sid.name, cfg, root)
         if not (out / "rgb.txt").is_file():
             render_synth(sid.name, cfg, out, progress=progress)
-        else:
-            check_synth_cache(out, sid.name, cfg)
         return sid, out
     return sid, _named_folder(sid, root)
 

@@ -111,7 +111,7 @@ def run_demo(preset: str = "walker", out: Optional[Path] = None, data_root: Opti
     The default run folder is the demo's own and is always overwritten (a second ``make demo``
     just works); a folder given as ``out`` that already holds a run is refused unless
     ``overwrite``.  ``say`` receives the phase lines (stderr by default)."""
-    from dynslam_cli.data.open import check_synth_cache, render_synth, synth_cache_dir
+    from dynslam_cli.data.open import render_synth, synth_cache_dir
     from dynslam_cli.run.folder import describe_run, run_entries
     from dynslam_cli.run.runner import default_out_dir, run_sequence, select_device
     from dynslam_cli.utils.threads import set_threads
@@ -138,8 +138,6 @@ def run_demo(preset: str = "walker", out: Optional[Path] = None, data_root: Opti
         render_synth(preset, cfg, scene, progress=progress)
         rendered, render_s = True, time.perf_counter() - t
         say(f"rendered {spec} in {render_s:.0f} s")
-    else:
-        check_synth_cache(scene, preset, cfg)
     say(f"running {spec} in dynamic mode ({s.frames} frames, {n_threads} thread{'s' * (n_threads != 1)}) ...")
     t = time.perf_counter()
     # the demo's own folder is replaced every time; a given --out was checked above
