@@ -1,0 +1,124 @@
+"""Bias of the backend's pose-only solve on a synthetic scene (a diagnostic, no timing).
+
+The backend runs alone over a scene rendered by ``dynslam synth`` (its ground-truth motion masks as the static
+masks), with every tracked pose replaced by the ground truth: keyframes, landmarks and bundle adjustments are made
+as usual, from right poses.  Then every frame the backend kept matches for is solved again pose-only against the
+finished map (``tracking.optimize_pose``, as tracking and ``refine.refine_poses`` solve), starting at its
+ground-truth pose.  Prints, per ``--huber``: the mean and median error of those solves in each frame's camera
+frame (x right, y down, z forward; mm), the share of matches beyond the Huber kernel at the true pose, and what
+those matches are (with depth, on a depth discontinuity, pyramid level, their mean residual and its radial part).
+
+docs/experiments.md ("Bonn's depth in metres ...") found that the synthetic scenes' trajectories come out short
+because of this solve, not of the bundle adjustment; this script measures it directly.
+
+    dynslam synth static --out /tmp/static_dn0 --frames 120 --set synth.depth_noise=0 --set synth.depth_holes=0
+    .venv/bin/python benchmarks/bench_pose_bias.py --seq /tmp/static_dn0 --k 0.002 --huber 2.8,1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import numpy as np
+
+
+def ground_truth_backend(spec: str, k: float | None):
+    """The backend after the sequence ``spec`` with every tracked pose set to the ground truth (relative to
+    frame 0); returns it, the sequence, the relative ground-truth poses and each frame's depth."""
+    import dynslam_cli.backend.backend as bk
+    from dynslam_cli.backend.config import BackendConfig
+    from dynslam_cli.data.open import open_sequence
+
+    seq = open_sequence(spec)
+    if any(p is None for p in seq.gt_poses):
+        raise SystemExit(f"{spec}: every frame needs a ground-truth pose")
+    g0 = np.linalg.inv(seq.gt_poses[0])
+    gt = [g0 @ p for p in seq.gt_poses]
+    current = {}
+    real = bk.track_frame
+
+    def track_at_truth(*a, **kw):
+        tr = real(*a, **kw)
+        return tr if tr.lost else dataclasses.replace(tr, pose=current["pose"].copy())
+
+    intr = seq.intrinsics
+    be = bk.Backend((intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height), BackendConfig(),
+                    depth_noise=seq.depth_noise if k is None else k)
+    depths = {}
+    bk.track_frame = track_at_truth
+    try:
+        for f in seq:
+            current["pose"] = gt[f.index]
+            static = None if f.dynamic_mask is None else ~f.dynamic_mask
+            be.track(f.index, f.rgb, f.depth, static, stamp=f.timestamp)
+            depths[f.index] = f.depth
+    finally:
+        bk.track_frame = real
+    return be, seq, gt, depths
+
+
+def solve_bias(be, gt, depths, huber: float) -> dict:
+    """Each matched frame solved pose-only from its true pose against the finished map (see the module doc)."""
+    from dynslam_cli.backend.features import on_depth_discontinuity
+    from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, information, optimize_pose, stereo_residuals
+    from dynslam_cli.geometry.camera import pixel_index
+
+    usable = be.lm.alive & ~be.lm.moving
+    cx, cy = be.cam.cx, be.cam.cy
+    errs, rows_out, n_matches = [], [], 0
+    for row in be.matches.frames():
+        ids, kp = be.matches.get(row)
+        ok = ids >= 0
+        ok[ok] = usable[ids[ok]]
+        if ok.sum() < be.cfg.min_matches:
+            continue
+        r = np.flatnonzero(ok)
+        X, kps = be.lm.pos[ids[r]], kp.subset(r)
+        n_matches += len(r)
+        T, _ = optimize_pose(be.cam, gt[row], X, kps, huber)
+        errs.append(gt[row][:3, :3].T @ (T[:3, 3] - gt[row][:3, 3]) * 1000)
+        pc, e = stereo_residuals(be.cam, np.linalg.inv(gt[row]), X, kps.uv, kps.depth)
+        st = kps.depth > 0
+        e[~st, 2] = 0
+        c2 = (e * e * information(be.cam, kps.depth, kps.dsig, kps.octave)).sum(1)
+        th = np.where(st, huber ** 2, huber ** 2 * CHI2_MONO / CHI2_STEREO)
+        v, u = pixel_index(kps.uv, *depths[row].shape)
+        occ = on_depth_discontinuity(depths[row], v, u, kps.octave)
+        out = np.flatnonzero(c2 > th)
+        d = kps.uv[out] - [cx, cy]
+        radial = (e[out, 0] * d[:, 0] + e[out, 1] * d[:, 1]) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1.0)
+        rows_out.append(np.c_[kps.octave[out], st[out], occ[out], e[out, :2], radial])
+    errs = np.array(errs).reshape(-1, 3)
+    o = np.concatenate(rows_out) if rows_out else np.zeros((0, 6))
+    return {"frames": len(errs), "mean": errs.mean(0) if len(errs) else np.full(3, np.nan),
+            "median": np.median(errs, 0) if len(errs) else np.full(3, np.nan), "matches": n_matches,
+            "beyond": len(o), "outliers": o}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seq", required=True, help="a synthetic scene folder (or synth/PRESET)")
+    ap.add_argument("--k", type=float, default=None, help="the backend's depth noise per m² (default: the scene's)")
+    ap.add_argument("--huber", default="2.8,1000", help="comma-separated Huber widths (px) of the solve")
+    args = ap.parse_args()
+    be, seq, gt, depths = ground_truth_backend(args.seq, args.k)
+    print(f"{seq.name}: {len(seq)} frames, {len(be.kf_frame)} keyframes, {be.lm.n_alive} landmarks")
+    print("| huber px | frames | solved - true, camera frame, mean mm (x y z) | median mm | matches | beyond the "
+          "kernel at the truth | with depth | on a depth step | mean level | mean residual u, v px | radial px |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for h in (float(x) for x in args.huber.split(",")):
+        r = solve_bias(be, gt, depths, h)
+        o = r["outliers"]
+        share = f"{r['beyond']} ({100 * r['beyond'] / max(r['matches'], 1):.1f} %)"
+        if len(o):
+            desc = (f"{o[:, 1].mean():.2f} | {o[:, 2].mean():.2f} | {o[:, 0].mean():.2f} | "
+                    f"{o[:, 3].mean():.2f}, {o[:, 4].mean():.2f} | {o[:, 5].mean():.2f}")
+        else:
+            desc = "– | – | – | – | –"
+        fmt = lambda a: " ".join(f"{x:+.3f}" for x in a)  # noqa: E731
+        print(f"| {h:g} | {r['frames']} | {fmt(r['mean'])} | {fmt(r['median'])} | {r['matches']} | {share} | {desc} |")
+
+
+if __name__ == "__main__":
+    main()
