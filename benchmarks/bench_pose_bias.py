@@ -25,7 +25,8 @@ import numpy as np
 
 def ground_truth_backend(spec: str, k: float | None):
     """The backend after the sequence ``spec`` with every tracked pose set to the ground truth (relative to
-    frame 0); returns it, the sequence, the relative ground-truth poses and each frame's depth."""
+    frame 0), not fused with the motion model's prediction; returns it, the sequence, the relative ground-truth
+    poses and each frame's depth."""
     import dynslam_cli.backend.backend as bk
     from dynslam_cli.backend.config import BackendConfig
     from dynslam_cli.data.open import open_sequence
@@ -46,7 +47,13 @@ def ground_truth_backend(spec: str, k: float | None):
     be = bk.Backend((intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height), BackendConfig(),
                     depth_noise=seq.depth_noise if k is None else k)
     depths = {}
-    bk.track_frame = track_at_truth
+    fuse = bk.Backend._fuse
+
+    def fuse_at_truth(self, tr, kp, redo=False):  # the motion model sees the pose but does not move it
+        fuse(self, tr, kp, redo)
+        return tr.pose.copy()
+
+    bk.track_frame, bk.Backend._fuse = track_at_truth, fuse_at_truth
     try:
         for f in seq:
             current["pose"] = gt[f.index]
@@ -54,7 +61,7 @@ def ground_truth_backend(spec: str, k: float | None):
             be.track(f.index, f.rgb, f.depth, static, stamp=f.timestamp)
             depths[f.index] = f.depth
     finally:
-        bk.track_frame = real
+        bk.track_frame, bk.Backend._fuse = real, fuse
     return be, seq, gt, depths
 
 
