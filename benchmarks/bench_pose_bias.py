@@ -13,6 +13,7 @@ because of this solve, not of the bundle adjustment; this script measures it dir
 
     dynslam synth static --out /tmp/static_dn0 --frames 120 --set synth.depth_noise=0 --set synth.depth_holes=0
     .venv/bin/python benchmarks/bench_pose_bias.py --seq /tmp/static_dn0 --k 0.002 --huber 2.8,1000
+    .venv/bin/python benchmarks/bench_pose_bias.py              # synth/static as rendered by default (150 frames)
 """
 
 from __future__ import annotations
@@ -105,7 +106,8 @@ def solve_bias(be, gt, depths, huber: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seq", required=True, help="a synthetic scene folder (or synth/PRESET)")
+    ap.add_argument("--seq", default="synth/static",
+                    help="a synthetic scene folder, or synth/PRESET (rendered into the data root; default synth/static)")
     ap.add_argument("--k", type=float, default=None, help="the backend's depth noise per m² (default: the scene's)")
     ap.add_argument("--huber", default="2.8,1000", help="comma-separated Huber widths (px) of the solve")
     args = ap.parse_args()

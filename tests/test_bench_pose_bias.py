@@ -1,0 +1,52 @@
+"""The ground-truth-tracked backend and the pose-only solves of benchmarks/bench_pose_bias.py (the benchmark
+itself is run by hand)."""
+
+import numpy as np
+import pytest
+
+import benchmark_scripts  # tests/benchmark_scripts.py
+
+B = benchmark_scripts.load("bench_pose_bias")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from dynslam_cli.synth.config import SynthConfig
+    from dynslam_cli.synth.render import render_preset
+
+    out = tmp_path_factory.mktemp("pose_bias") / "static"
+    render_preset("static", out, SynthConfig(depth_noise=0.0, depth_holes=0.0), frames=12, progress=False)
+    return out
+
+
+class TestGroundTruthBackend:
+    def test_keyframes_sit_at_the_true_poses(self, scene):
+        be, seq, gt, depths = B.ground_truth_backend(str(scene), 0.002)
+        assert len(seq) == 12 and len(depths) == 12 and len(be.kf_frame) >= 1
+        for f, pose in zip(be.kf_frame, be.kf_pose, strict=False):
+            # the bundle adjustments may move them a little; the tracked poses were the truth
+            assert np.linalg.norm(pose[:3, 3] - gt[int(f)][:3, 3]) < 0.01
+        assert np.allclose(gt[0], np.eye(4))
+
+    def test_tracked_poses_are_the_truth_and_the_backend_is_restored(self, scene):
+        import dynslam_cli.backend.backend as bk
+        from dynslam_cli.backend import tracking
+
+        be, _, gt, _ = B.ground_truth_backend(str(scene), 0.002)
+        traj = be.trajectory()
+        last = len(traj) - 1
+        if last not in set(int(f) for f in be.kf_frame):  # a keyframe's pose is the bundle adjustment's
+            assert np.allclose(traj[last], gt[last], atol=1e-6)
+        assert bk.track_frame is tracking.track_frame
+        assert bk.Backend._fuse.__name__ == "_fuse"
+
+
+class TestSolveBias:
+    def test_solves_land_near_the_truth_and_report_the_kernel(self, scene):
+        be, _, gt, depths = B.ground_truth_backend(str(scene), 0.002)
+        r = B.solve_bias(be, gt, depths, 2.8)
+        assert r["frames"] >= 5 and r["matches"] > 100 * r["frames"]
+        assert np.abs(r["mean"]).max() < 5.0  # mm: a right map, a solve from the truth
+        assert 0 <= r["beyond"] < 0.2 * r["matches"] and r["outliers"].shape == (r["beyond"], 6)
+        wide = B.solve_bias(be, gt, depths, 1e6)
+        assert wide["beyond"] == 0 and wide["matches"] == r["matches"]
