@@ -69,7 +69,7 @@ def ground_truth_backend(spec: str, k: float | None):
 def solve_bias(be, gt, depths, huber: float) -> dict:
     """Each matched frame solved pose-only from its true pose against the finished map (see the module doc)."""
     from dynslam_cli.backend.features import on_depth_discontinuity
-    from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, information, optimize_pose, stereo_residuals
+    from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, chi2, optimize_pose, stereo_residuals
     from dynslam_cli.geometry.camera import pixel_index
 
     usable = be.lm.alive & ~be.lm.moving
@@ -86,10 +86,10 @@ def solve_bias(be, gt, depths, huber: float) -> dict:
         n_matches += len(r)
         T, _ = optimize_pose(be.cam, gt[row], X, kps, huber)
         errs.append(gt[row][:3, :3].T @ (T[:3, 3] - gt[row][:3, 3]) * 1000)
-        pc, e = stereo_residuals(be.cam, np.linalg.inv(gt[row]), X, kps.uv, kps.depth)
+        Tcw = np.linalg.inv(gt[row])
+        _, e = stereo_residuals(be.cam, Tcw, X, kps.uv, kps.depth)
+        c2 = chi2(be.cam, Tcw, X, kps.uv, kps.depth, kps.octave, kps.dsig)  # whitened as the solve whitens
         st = kps.depth > 0
-        e[~st, 2] = 0
-        c2 = (e * e * information(be.cam, kps.depth, kps.dsig, kps.octave)).sum(1)
         th = np.where(st, huber ** 2, huber ** 2 * CHI2_MONO / CHI2_STEREO)
         v, u = pixel_index(kps.uv, *depths[row].shape)
         occ = on_depth_discontinuity(depths[row], v, u, kps.octave)

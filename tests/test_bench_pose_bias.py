@@ -19,20 +19,26 @@ def scene(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def built(scene):
+    """The ground-truth-tracked backend over the scene, built once (the solves only read it)."""
+    return B.ground_truth_backend(str(scene), 0.002)
+
+
 class TestGroundTruthBackend:
-    def test_keyframes_sit_at_the_true_poses(self, scene):
-        be, seq, gt, depths = B.ground_truth_backend(str(scene), 0.002)
+    def test_keyframes_sit_at_the_true_poses(self, built):
+        be, seq, gt, depths = built
         assert len(seq) == 12 and len(depths) == 12 and len(be.kf_frame) >= 1
         for f, pose in zip(be.kf_frame, be.kf_pose, strict=False):
             # the bundle adjustments may move them a little; the tracked poses were the truth
             assert np.linalg.norm(pose[:3, 3] - gt[int(f)][:3, 3]) < 0.01
         assert np.allclose(gt[0], np.eye(4))
 
-    def test_tracked_poses_are_the_truth_and_the_backend_is_restored(self, scene):
+    def test_tracked_poses_are_the_truth_and_the_backend_is_restored(self, built):
         import dynslam_cli.backend.backend as bk
         from dynslam_cli.backend import tracking
 
-        be, _, gt, _ = B.ground_truth_backend(str(scene), 0.002)
+        be, _, gt, _ = built
         traj = be.trajectory()
         last = len(traj) - 1
         if last not in set(int(f) for f in be.kf_frame):  # a keyframe's pose is the bundle adjustment's
@@ -42,8 +48,8 @@ class TestGroundTruthBackend:
 
 
 class TestSolveBias:
-    def test_solves_land_near_the_truth_and_report_the_kernel(self, scene):
-        be, _, gt, depths = B.ground_truth_backend(str(scene), 0.002)
+    def test_solves_land_near_the_truth_and_report_the_kernel(self, built):
+        be, _, gt, depths = built
         r = B.solve_bias(be, gt, depths, 2.8)
         assert r["frames"] >= 5 and r["matches"] > 100 * r["frames"]
         assert np.abs(r["mean"]).max() < 5.0  # mm: a right map, a solve from the truth
