@@ -56,3 +56,53 @@ class TestSolveBias:
         assert 0 <= r["beyond"] < 0.2 * r["matches"] and r["outliers"].shape == (r["beyond"], 6)
         wide = B.solve_bias(be, gt, depths, 1e6)
         assert wide["beyond"] == 0 and wide["matches"] == r["matches"]
+
+
+class TestDepthSkew:
+    def test_bins_cover_every_match_within_5_cm(self, built):
+        be, _, gt, _ = built
+        rows = B.depth_skew(be, gt)
+        assert [q["hi"] for q in rows] == list(B.SLOPE_BINS)
+        assert sum(q["n"] for q in rows) > 100 and 0.5 < sum(q["share"] for q in rows) <= 1.0 + 1e-9
+        for q in rows:
+            if q["n"]:
+                assert abs(q["mean"]) < 50 and abs(q["median"]) < 50
+
+    def test_landmarks_on_the_observations_give_zero(self, built):
+        """A frame's matched landmarks moved onto what it observes at its true pose: every difference is 0."""
+        be, _, gt, _ = built
+        row = max(be.matches.frames())
+        ids, kp = be.matches.get(row)
+        ok = (ids >= 0) & (kp.depth > 0)
+        d = kp.depth[ok]
+        pc = np.c_[(kp.uv[ok, 0] - be.cam.cx) / be.cam.fx * d, (kp.uv[ok, 1] - be.cam.cy) / be.cam.fy * d, d]
+        saved = be.lm.pos.copy()  # the fixture is shared: put the landmarks back
+        try:
+            be.lm.pos[ids[ok]] = pc @ gt[row][:3, :3].T + gt[row][:3, 3]
+            rows = B.depth_skew(be, gt, frames=[row])
+        finally:
+            be.lm.pos = saved
+        assert sum(q["n"] for q in rows) > 20
+        for q in rows:
+            if q["n"]:
+                assert abs(q["mean"]) < 1e-6 and abs(q["median"]) < 1e-6
+
+
+class TestCreatedMap:
+    def test_no_bundle_keeps_each_landmark_where_its_keyframe_saw_it(self, scene):
+        import dynslam_cli.backend.backend as bk
+
+        real = bk.local_bundle_adjustment
+        be, _, _, _ = B.ground_truth_backend(str(scene), 0.002, bundle=False)
+        assert bk.local_bundle_adjustment is real
+        first = {}
+        for j, kf, d in zip(be.lm.obs_lm, be.lm.obs_kf, be.lm.obs_depth, strict=True):
+            first.setdefault(int(j), (int(kf), float(d)))
+        checked = 0
+        for j, (kf, d) in first.items():
+            if d <= 0 or int(be.lm.first_kf[j]) != kf:
+                continue
+            T = be.kf_pose[kf]
+            assert ((be.lm.pos[j] - T[:3, 3]) @ T[:3, :3])[2] == pytest.approx(d, abs=1e-9)
+            checked += 1
+        assert checked > 50
