@@ -81,23 +81,29 @@ def ground_truth_backend(spec: str, k: float | None, bundle: bool = True):
     return be, seq, gt, depths
 
 
+def usable_matches(be, row: int) -> tuple[np.ndarray, np.ndarray, object]:
+    """Frame ``row``'s kept matches to landmarks still alive and not found to move: (their rows among the frame's
+    keypoints, the landmark ids, the frame's keypoints)."""
+    ids, kp = be.matches.get(row)
+    ok = ids >= 0
+    ok[ok] = (be.lm.alive & ~be.lm.moving)[ids[ok]]
+    r = np.flatnonzero(ok)
+    return r, ids[r], kp
+
+
 def solve_bias(be, gt, depths, huber: float) -> dict:
     """Each matched frame solved pose-only from its true pose against the finished map (see the module doc)."""
     from dynslam_cli.backend.features import on_depth_discontinuity
     from dynslam_cli.backend.tracking import CHI2_MONO, CHI2_STEREO, chi2, optimize_pose, stereo_residuals
     from dynslam_cli.geometry.camera import pixel_index
 
-    usable = be.lm.alive & ~be.lm.moving
     cx, cy = be.cam.cx, be.cam.cy
     errs, rows_out, n_matches = [], [], 0
     for row in be.matches.frames():
-        ids, kp = be.matches.get(row)
-        ok = ids >= 0
-        ok[ok] = usable[ids[ok]]
-        if ok.sum() < be.cfg.min_matches:
+        r, lm, kp = usable_matches(be, row)
+        if len(r) < be.cfg.min_matches:
             continue
-        r = np.flatnonzero(ok)
-        X, kps = be.lm.pos[ids[r]], kp.subset(r)
+        X, kps = be.lm.pos[lm], kp.subset(r)
         n_matches += len(r)
         T, _ = optimize_pose(be.cam, gt[row], X, kps, huber)
         errs.append(gt[row][:3, :3].T @ (T[:3, 3] - gt[row][:3, 3]) * 1000)
@@ -129,16 +135,15 @@ def depth_skew(be, gt, frames=None) -> list[dict]:
     (``dsig / (k d^2)``, :data:`SLOPE_BINS`; 1 = the sensor's noise alone).  Rows: ``lo``, ``hi``, ``n``,
     ``mean`` and ``median`` (mm) over the matches within 5 cm, and their share of all matches.  ``frames``:
     the frames to take (default every frame the backend kept matches for)."""
-    usable = be.lm.alive & ~be.lm.moving
+    from dynslam_cli.backend.features import project
+
     k = be.detector.depth_noise
     dz, ratio = [], []
     for row in (be.matches.frames() if frames is None else frames):
-        ids, kp = be.matches.get(row)
-        ok = (ids >= 0) & (kp.depth > 0)
-        ok[ok] = usable[ids[ok]]
-        r = np.flatnonzero(ok)
-        Tcw = np.linalg.inv(gt[row])
-        z = be.lm.pos[ids[r]] @ Tcw[2, :3] + Tcw[2, 3]
+        r, lm, kp = usable_matches(be, row)
+        has = kp.depth[r] > 0
+        r, lm = r[has], lm[has]
+        _, z = project(gt[row], be.lm.pos[lm], be.cam.K)
         dz.append((kp.depth[r] - z) * 1000)
         ratio.append(kp.dsig[r] / np.maximum(k * kp.depth[r] ** 2, 1e-12))
     dz = np.concatenate(dz) if dz else np.zeros(0)
