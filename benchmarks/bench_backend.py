@@ -3,7 +3,8 @@
 Prints one row per (sequence, static mask): ATE RMSE of the online poses, of the final
 trajectory (frames composed with their bundle-adjusted reference keyframes), of that trajectory with
 every frame but the keyframes solved again against the finished map (backend/refine.py) and of the
-latter with its centres smoothed (as a run writes traj_est.txt: backend/smoothing.py) beside the
+latter with its centres smoothed (as a run writes traj_est.txt: backend/smoothing.py), the Sim(3) scale
+of that trajectory (estimate to ground truth: above 1 = the estimated path is too short) beside the
 ATE of a camera that never moves, frames lost, keyframes, median ms per frame for tracking and per keyframe
 for bundle adjustment, landmarks at the end.
 
@@ -142,10 +143,11 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
                             ("smoothed", smoothed)):
             est = write_tum(Path(tmp) / f"{name}.txt", seq.stamps, poses)
             ates[name] = compute_ate(est, seq.groundtruth_file)
+        scale = compute_ate(est, seq.groundtruth_file, align="sim3").scale  # of the smoothed trajectory
     return {"seq": path.name, "masks": masks, "frames": len(seq),
             "ate_cm": 100 * ates["online"].rmse_m, "ate_final_cm": 100 * ates["final"].rmse_m,
             "ate_refined_cm": 100 * ates["refined"].rmse_m, "ate_smoothed_cm": 100 * ates["smoothed"].rmse_m,
-            "max_cm": 100 * ates["final"].max_m, "still_cm": 100 * ates["final"].rmse_still_m,
+            "scale": scale, "max_cm": 100 * ates["final"].max_m, "still_cm": 100 * ates["final"].rmse_still_m,
             "lost": lost, "keyframes": len(be.kf_frame),
             "track_ms": float(np.median(track_ms)), "ba_ms": float(np.median(ba_ms)) if ba_ms else 0.0,
             "ba_max_ms": float(np.max(ba_ms)) if ba_ms else 0.0, "landmarks": be.lm.n_alive,
@@ -181,12 +183,12 @@ def main() -> None:
                     print("  lost", e, file=sys.stderr)
     noise = "the sequence's" if a.depth_noise is None else f"{a.depth_noise:g}"
     print(f"settings: {' '.join(a.set) or 'defaults'}, depth {a.depth}, depth noise {noise}")
-    cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "ate_refined_cm", "ate_smoothed_cm", "max_cm", "still_cm",
-            "lost", "keyframes",
-            "track_ms", "ba_ms", "ba_max_ms", "landmarks", "mask_ms")
+    cols = ("seq", "masks", "frames", "ate_cm", "ate_final_cm", "ate_refined_cm", "ate_smoothed_cm", "scale", "max_cm",
+            "still_cm", "lost", "keyframes", "track_ms", "ba_ms", "ba_max_ms", "landmarks", "mask_ms")
     print(" | ".join(cols))
     for r in rows:
-        print(" | ".join(f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+        print(" | ".join(f"{r[c]:.4f}" if c == "scale" else f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c])
+                         for c in cols))
 
 
 if __name__ == "__main__":
