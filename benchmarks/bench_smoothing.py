@@ -40,19 +40,22 @@ def resmooth(run: Path) -> dict | None:
     """ATE cm of a run folder's unsmoothed, stored and re-smoothed trajectories and the smoother's report; None
     where its run.json names no ground truth file that exists."""
     import numpy as np
+    from scipy.spatial.transform import Rotation
 
     from dynslam_cli.backend.smoothing import smooth_centres
     from dynslam_cli.eval.ate import compute_ate, read_tum
+    from dynslam_cli.run.runner import write_tum
 
     gt = (json.loads((run / "run.json").read_text()).get("sequence") or {}).get("groundtruth")
     if not gt or not Path(gt).is_file():
         return None
     stamps, xyz, quat = read_tum(run / "traj_unsmoothed.txt", "trajectory")
     sm = smooth_centres(stamps, xyz)
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()  # the orientations as the run wrote them
+    poses[:, :3, 3] = sm.centres
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "traj_est.txt"
-        rows = np.c_[stamps, sm.centres, quat]
-        np.savetxt(path, rows, fmt=["%.6f"] + ["%.7f"] * 7, header="timestamp tx ty tz qx qy qz qw")
+        path = write_tum(Path(tmp) / "traj_est.txt", [f"{s:.6f}" for s in stamps], poses)  # as a run writes it
         new = compute_ate(path, gt).rmse_m * 100
     out = {"run": str(run), "unsmoothed": compute_ate(run / "traj_unsmoothed.txt", gt).rmse_m * 100,
            "stored": None, "resmoothed": new, "q": sm.q, "downweighted": sm.downweighted}
