@@ -143,7 +143,7 @@ def run_case(spec: str, masks: str, sets: list[str], depth_kind: str, frames: in
                             ("smoothed", smoothed)):
             est = write_tum(Path(tmp) / f"{name}.txt", seq.stamps, poses)
             ates[name] = compute_ate(est, seq.groundtruth_file)
-        scale = compute_ate(est, seq.groundtruth_file, align="sim3").scale  # of the smoothed trajectory
+        scale = compute_ate(Path(tmp) / "smoothed.txt", seq.groundtruth_file, align="sim3").scale
     return {"seq": path.name, "masks": masks, "frames": len(seq),
             "ate_cm": 100 * ates["online"].rmse_m, "ate_final_cm": 100 * ates["final"].rmse_m,
             "ate_refined_cm": 100 * ates["refined"].rmse_m, "ate_smoothed_cm": 100 * ates["smoothed"].rmse_m,
