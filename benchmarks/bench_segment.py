@@ -7,7 +7,8 @@ Runs the segmenter a run uses (``motion.segmenter: geometric``, the sequence's i
 ``--widths`` overriding ``motion.geometric_width``) on every ``--step``-th frame, one thread, and
 prints per sequence and width: segments per frame and ms per frame (medians), and, where the
 sequence has ground-truth motion masks (synthetic scenes), the **oracle mask IoU**: each segment
-called dynamic when most of its pixels are, the IoU with the ground truth averaged over the frames
+called dynamic when most of its pixels are, its extent masked (what a run masks), the IoU with the
+ground truth averaged over the frames
 with a mover (as ``eval-masks`` averages a run's masks). No classifier can do better with these
 segments: it is the segmenter's cap on a run's mask IoU.
 
@@ -33,15 +34,16 @@ BONN = SHARED / "data" / "bonn_crowd_150_449_s2"
 PRESETS = ("static", "walker", "crowd", "kidnap", "balloon", "tracking")
 
 
-def oracle_mask(ids: np.ndarray, gt: np.ndarray) -> np.ndarray:
+def oracle_mask(ids: np.ndarray, gt: np.ndarray, extent: np.ndarray | None = None) -> np.ndarray:
     """H×W bool: the segments of ``ids`` (H×W int, 0 = none) with more than half of their pixels
-    dynamic in ``gt`` (H×W bool)."""
-    n = int(ids.max()) + 1
+    dynamic in ``gt`` (H×W bool), over their ``extent`` (H×W int, what a dynamic segment masks:
+    ``Segmentation.extent``) where given, else over ``ids``."""
+    n = int(max(ids.max(), 0 if extent is None else extent.max())) + 1
     area = np.bincount(ids.ravel(), minlength=n)
     moving = np.bincount(ids.ravel(), weights=gt.ravel().astype(np.float64), minlength=n)
     dynamic = 2 * moving > area
     dynamic[0] = False
-    return dynamic[ids]
+    return dynamic[ids if extent is None else extent]
 
 
 def sequence_path(spec: str, data_root: Path, frames: int) -> Path:
@@ -87,11 +89,11 @@ def measure(path: Path, widths: list[int], step: int) -> list[dict]:
         ms, counts, ious = [], [], []
         for f in frames:
             t0 = time.perf_counter()
-            ids = seg.segment(f.rgb, f.depth).ids
+            s = seg.segment(f.rgb, f.depth)
             ms.append((time.perf_counter() - t0) * 1000)
-            counts.append(int(ids.max()))
+            counts.append(int(s.ids.max()))
             if f.dynamic_mask is not None and f.dynamic_mask.any():
-                ious.append(frame_scores(oracle_mask(ids, f.dynamic_mask), f.dynamic_mask)["iou"])
+                ious.append(frame_scores(oracle_mask(s.ids, f.dynamic_mask, s.extent), f.dynamic_mask)["iou"])
         rows.append({"seq": path.name, "width": w, "frames": len(frames), "segments": statistics.median(counts),
                      "ms": statistics.median(ms), "oracle_iou": float(np.mean(ious)) if ious else None})
     return rows

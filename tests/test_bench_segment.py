@@ -22,6 +22,13 @@ class TestOracleMask:
                              [0, 0, 0, 0]], bool)
         np.testing.assert_array_equal(B.oracle_mask(ids, gt), expected)
 
+    def test_extent_is_masked_by_the_ids_majority(self):
+        ids = np.array([[1, 1, 0, 2]])
+        extent = np.array([[1, 1, 1, 2]])  # the unlabelled pixel belongs to segment 1's extent
+        gt = np.array([[1, 1, 1, 0]], bool)
+        np.testing.assert_array_equal(B.oracle_mask(ids, gt, extent), [[1, 1, 1, 0]])
+        np.testing.assert_array_equal(B.oracle_mask(ids, gt), [[1, 1, 0, 0]])
+
     def test_no_mover_no_mask(self):
         ids = np.arange(12).reshape(3, 4)
         assert not B.oracle_mask(ids, np.zeros((3, 4), bool)).any()

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.checkable import checkable_depth, closest_rendered, keyframe_visibility
+from dynslam_cli.motion.checkable import bounded_extent, checkable_depth, closest_rendered, keyframe_visibility, seen_through
 from dynslam_cli.slam.keyframes import subsample_depth
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
@@ -142,3 +142,115 @@ def test_samples_without_depth_are_the_camera_centre_seen_or_not():
         assert np.array_equal(frustum[::2, ::2], ref_f) and np.array_equal(observed[::2, ::2], ref_o)
         none = depth[::2, ::2] == 0
         assert ref_o[none].all() == seen and ref_f[none].all() == seen and ref_f[none].any() == seen
+
+
+INTR_WH = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+
+
+def _kf(depth, pose=None):
+    return SimpleNamespace(pose_c2w=np.eye(4) if pose is None else pose, depth_raw_small=subsample_depth(depth))
+
+
+class TestSeenThrough:
+    def test_new_in_front_of_what_the_newest_keyframe_saw(self):
+        wall = np.full((48, 64), 2.0, np.float32)
+        now = wall.copy()
+        now[10:30, 10:30] = 1.0  # something stands 1 m in front of the wall the keyframe saw
+        out = seen_through(now, np.ones((48, 64), bool), np.eye(4), INTR_WH, [_kf(wall)], 0.3)
+        assert out.shape == (48, 64) and out[20, 20] and not out[40, 50]
+        assert not seen_through(now, np.ones((48, 64), bool), np.eye(4), INTR_WH, [_kf(wall)], 1.5)[20, 20]
+
+    def test_only_where_asked_and_with_depth(self):
+        wall = np.full((48, 64), 2.0, np.float32)
+        now = wall.copy()
+        now[10:30, 10:30] = 1.0
+        now[15, 15] = 0.0  # a sensor hole
+        where = np.zeros((48, 64), bool)
+        where[10:20] = True
+        out = seen_through(now, where, np.eye(4), INTR_WH, [_kf(wall)], 0.3)
+        assert out[12, 12] and not out[25, 25] and not out[15, 15]
+
+    def test_any_of_the_last_keyframes(self):
+        wall = np.full((48, 64), 2.0, np.float32)
+        now = wall.copy()
+        now[10:30, 10:30] = 1.0
+        every = np.ones((48, 64), bool)
+        # a keyframe before saw the wall there, the newest the thing already standing: one of them saw through
+        assert seen_through(now, every, np.eye(4), INTR_WH, [_kf(wall), _kf(now)], 0.3)[20, 20]
+        # only the last `newest` keyframes count (the keyframes keep every 4th pixel: the thing's outermost
+        # pixels may land on the wall beside it)
+        assert not seen_through(now, every, np.eye(4), INTR_WH, [_kf(wall), _kf(now)], 0.3, newest=1)[12:28, 12:28].any()
+        assert not seen_through(now, every, np.eye(4), INTR_WH, [_kf(wall)] + [_kf(now)] * 3, 0.3)[12:28, 12:28].any()
+        # a keyframe without depth there (a hole) saw nothing
+        holed = wall.copy()
+        holed[8:32, 8:32] = 0.0
+        assert not seen_through(now, every, np.eye(4), INTR_WH, [_kf(holed)], 0.3).any()
+
+    def test_posed_keyframes(self):
+        wall = np.full((48, 64), 2.0, np.float32)
+        now = wall.copy()
+        now[10:30, 20:40] = 1.0
+        left = np.eye(4)
+        left[0, 3] = -0.4  # the keyframe stood 0.4 m to the left (10 px at 2 m): the wall is the same plane
+        out = seen_through(now, np.ones((48, 64), bool), np.eye(4), INTR_WH, [_kf(wall, left)], 0.3)
+        assert out[20, 30] and not out[40, 30]
+
+    def test_without_keyframes_nothing(self):
+        d = np.ones((48, 64), np.float32)
+        assert not seen_through(d, np.ones((48, 64), bool), np.eye(4), INTR_WH, [], 0.3).any()
+        kf = SimpleNamespace(pose_c2w=np.eye(4), depth_raw_small=None)
+        assert not seen_through(d, np.ones((48, 64), bool), np.eye(4), INTR_WH, [kf], 0.3).any()
+
+    def test_same_as_the_numpy_expression(self):
+        """The kernel against the whole-array numpy expression it replaces, on random posed keyframes."""
+        from dynslam_cli.geometry.camera import pixel_dirs, transform
+        from dynslam_cli.geometry.lie import se3_exp_np
+        from dynslam_cli.motion.checkable import project_into
+
+        rng = np.random.default_rng(0)
+        H, W = 48, 64
+        for _ in range(5):
+            now = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
+            now[rng.random((H, W)) < 0.1] = 0.0
+            where = rng.random((H, W)) < 0.7
+            pose = se3_exp_np(rng.normal(0, 0.05, 6))
+            kfs = [_kf(rng.uniform(0.0, 4.0, (H, W)).astype(np.float32), se3_exp_np(rng.normal(0, 0.05, 6)))
+                   for _ in range(4)]
+            ref = np.zeros((H, W), bool)
+            v, u = np.nonzero(where & (now > 0))
+            world = transform(pose, pixel_dirs(u, v, 50.0, 50.0, 31.5, 23.5) * now[v, u][:, None])
+            for kf in kfs[-3:]:
+                pc, pu, pv, inside = project_into(world, kf.pose_c2w, INTR_WH, W, H)
+                small = kf.depth_raw_small.astype(np.float32)
+                iu = np.clip(np.round(np.where(inside, pu, 0) / 4).astype(np.int64), 0, small.shape[1] - 1)
+                iv = np.clip(np.round(np.where(inside, pv, 0) / 4).astype(np.int64), 0, small.shape[0] - 1)
+                d_kf = small[iv, iu]
+                hit = inside & (d_kf > 0) & (d_kf > pc[:, 2] + 0.3)
+                ref[v[hit], u[hit]] = True
+            out = seen_through(now, where, pose, INTR_WH, kfs, 0.3)
+            assert ref.any() and not ref.all()
+            np.testing.assert_array_equal(out, ref)
+
+
+class TestBoundedExtent:
+    def test_extent_taken_only_where_something_new_stands(self):
+        wall = np.full((48, 64), 2.0, np.float32)
+        now = wall.copy()
+        now[10:30, 10:30] = 1.0  # a mover in front of the wall
+        ids = np.ones((48, 64), np.int32)  # the wall is segment 1
+        ids[12:28, 12:28] = 2  # the mover's segment misses its 2-px outline band ...
+        extent = ids.copy()
+        extent[10:30, 10:30] = 2  # ... which its extent takes back
+        extent[40:44, 40:44] = 2  # and a patch of the wall its depth would not continue into
+        out = bounded_extent(ids, extent, now, np.eye(4), INTR_WH, [_kf(wall)], 0.3)
+        assert (out[10:30, 10:30] == 2).all()  # the outline is in front of the wall the keyframe saw
+        assert (out[40:44, 40:44] == 1).all()  # the wall patch keeps its own segment
+        assert out.dtype == ids.dtype and ids[10, 10] == 1  # ids untouched
+
+    def test_same_ids_when_nothing_differs_or_nothing_is_new(self):
+        d = np.full((48, 64), 2.0, np.float32)
+        ids = np.ones((48, 64), np.int32)
+        assert bounded_extent(ids, ids.copy(), d, np.eye(4), INTR_WH, [_kf(d)], 0.3) is ids
+        ext = ids.copy()
+        ext[:5] = 2
+        assert bounded_extent(ids, ext, d, np.eye(4), INTR_WH, [_kf(d)], 0.3) is ids

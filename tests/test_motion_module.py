@@ -12,6 +12,7 @@ from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.check import inconsistency_check
 from dynslam_cli.motion.segment_geometric import GeometricSegmenter
 from dynslam_cli.motion.toyscene import render_toy, toy_intrinsics
+from dynslam_cli.slam.keyframes import subsample_depth
 
 torch = pytest.importorskip("torch")
 
@@ -114,7 +115,11 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     mod = _module()
     pose = np.eye(4)
     f0 = _frame(0, person_x=-0.3)
+    # the map (rendered) and the last keyframe saw the empty room: the person stands 1.5 m in front of it
+    room_depth = render_toy(W, H, person=False)[1]
+    room_kf = SimpleNamespace(pose_c2w=pose, depth_raw_small=subsample_depth(room_depth))
     inst0 = mod.observe(f0, pose)
+    assert inst0.extent is None and inst0.grown is not None  # the outline waits for the tracked pose
     assert inst0.count >= 3 and inst0.embeddings.shape == (inst0.count, mod.encoder.dim)
     assert not inst0.dynamic.any() and inst0.static_mask.all()
     assert {"segment", "encode", "classify"} <= set(inst0.timings)
@@ -124,14 +129,25 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     kept0 = mod.keyframe_instances(inst0)  # what a keyframe keeps to re-classify its instances
     assert kept0[0].shape[0] == inst0.count and kept0[1].dtype == bool
     assert mod.dynamic_ids(*kept0).size == 0
-    # the map (rendered) is the empty room: the person stands 1.5 m in front of it
-    room_depth = render_toy(W, H, person=False)[1]
     rec = mod.check_and_update(f0, inst0, pose, room_depth[::2, ::2], None)
     assert rec is not None and rec.frame == 0
     assert rec.loss_after < rec.loss_before and rec.fixed and rec.replay_size >= 1
     assert inst0.dynamic[pid - 1] and inst0.dynamic.sum() == 1
     assert not inst0.static_mask[f0.gt == 1].mean() > 0.1
     assert inst0.static_mask[f0.gt == 0].mean() > 0.9
+    # at the tracked pose: no keyframe says where something new stands: the ids mask
+    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [], inst0.dynamic), inst0.static_mask)
+    assert inst0.extent is None
+    # what is masked (and written as the frame's motion mask) is the person's extent where the keyframe saw the
+    # room: its outline band too, not only its id's pixels; no wall pixel the keyframe saw as wall
+    for_map = mod.bound_outline(inst0, f0.depth, pose, [room_kf], inst0.dynamic)
+    assert not for_map[inst0.extent == pid].any() and (for_map <= inst0.static_mask).all()
+    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [room_kf], np.zeros_like(inst0.dynamic)),
+                                  np.ones_like(for_map))  # nothing dynamic: everything usable
+    assert inst0.extent is not None and (inst0.mask_ids == inst0.extent).all()
+    np.testing.assert_array_equal(inst0.dynamic_mask(), inst0.extent == pid)
+    assert (inst0.extent == pid).sum() > (inst0.ids == pid).sum()
+    assert (f0.gt[inst0.extent == pid] == 1).mean() > (f0.gt[inst0.ids == pid] == 1).mean()
     # the keyframe stored before the update now forgets the person's rays
     assert mod.dynamic_ids(*kept0).tolist() == [pid]
     # next frame: the person moved; g already calls it dynamic, the check agrees → no update
@@ -357,3 +373,20 @@ class TestPerceive:
         assert np.array_equal(before.seg.ids, after.seg.ids)
         assert np.array_equal(before.embeddings, after.embeddings)
         assert mod.observe(f, np.eye(4), after).dynamic.sum() == 1  # the classifier, not the perception, changed
+
+
+def test_static_mask_dilates_the_ids_not_the_extent():
+    mod = _module(mask_dilation=4 / W)  # 4 px
+    ids = np.zeros((H, W), np.int32)
+    ids[10:20, 10:20] = 1  # the dynamic instance's own pixels
+    ids[30:40, 30:40] = 2  # a static one
+    extent = ids.copy()
+    extent[10:20, 20:26] = 1  # its outline band, taken from where something new stands
+    dyn = np.array([True, False])
+    plain = mod._static_mask(ids, dyn)
+    assert not plain[6:24, 6:24].any() and plain[12, 25] and plain[35, 35]  # 4 px around the ids only
+    with_ext = mod._static_mask(ids, dyn, extent)
+    assert not with_ext[10:20, 20:26].any()  # the band is masked ...
+    assert with_ext[12, 27] and with_ext[12, 29]  # ... but not dilated: the pixels beside it stay usable
+    np.testing.assert_array_equal(with_ext | (extent == 1), plain | (extent == 1))
+    assert mod._static_mask(ids, np.array([False, False]), extent).all()

@@ -243,6 +243,24 @@ def test_geometric_person_in_front_of_wall(seed):
     assert np.bincount(seg.ids[floor], minlength=k + 1)[k] < 0.05 * floor.sum()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_geometric_extent_follows_depth(seed):
+    rgb, depth, gt = render_toy(320, 240, person_x=-0.3 + 0.1 * seed, noise=0.003, seed=seed)
+    seg = GeometricSegmenter(intrinsics=toy_intrinsics(320, 240)).segment(rgb, depth)
+    assert seg.extent.shape == seg.ids.shape and seg.extent.dtype == np.int32
+    assert seg.extent.max() == seg.ids.max()  # the same instances, numbered alike
+    labelled = seg.ids > 0
+    assert (seg.extent[labelled] == seg.ids[labelled]).mean() > 0.97  # they differ on the edge bands only
+    person = gt == 1
+    k = np.bincount(seg.ids[person]).argmax()
+    ext, own = seg.extent == k, seg.ids == k
+    # the edge band beside the depth step joins the side at its depth: the person's extent holds none of
+    # the wall (its id's pixels, the band given to the nearest segment, 0.5-0.8 %)
+    assert (ext & person).sum() / ext.sum() > 0.999
+    assert (own & person).sum() / own.sum() < (ext & person).sum() / ext.sum()
+    assert (ext & person).sum() >= (own & person).sum()
+
+
 def test_geometric_speed_320x240():
     rgb, depth, _ = render_toy(320, 240, noise=0.003)
     s = GeometricSegmenter()

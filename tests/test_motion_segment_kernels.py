@@ -127,3 +127,47 @@ class TestCreaseEdges:
         edge = np.zeros((3, 8), bool)
         kernels.crease_edges(n, np.ones((3, 8), bool), 1, np.cos(np.deg2rad(30.0)), edge)
         assert edge[:, 3:5].all() and edge.sum() == 6
+
+
+class TestGrowContinuous:
+    def test_band_beside_a_step_joins_the_side_at_its_depth(self):
+        dm = np.full((5, 12), 2.0, np.float32)
+        dm[:, 6:] = 3.0  # a 1 m step between columns 5 and 6
+        labels = np.zeros((5, 12), np.int32)
+        labels[:, :3] = 1
+        labels[:, 9:] = 2  # columns 3-8: the unlabelled band around the step
+        out = kernels.grow_continuous(labels, dm, 0.04)
+        assert (out[:, :6] == 1).all() and (out[:, 6:] == 2).all()
+
+    def test_shapes_dtype_and_input_untouched(self):
+        rng = np.random.default_rng(3)
+        dm = _depth(rng)
+        labels = (rng.random(dm.shape) < 0.02).astype(np.int32) * rng.integers(1, 5, dm.shape).astype(np.int32)
+        before = labels.copy()
+        out = kernels.grow_continuous(labels, dm, 0.04)
+        assert out.shape == dm.shape and out.dtype == np.int32
+        np.testing.assert_array_equal(labels, before)
+        # labelled pixels keep their label; pixels without depth are never grown into
+        np.testing.assert_array_equal(out[labels > 0], labels[labels > 0])
+        assert (out[(dm <= 0) & (labels == 0)] == 0).all()
+
+    def test_nearest_seed_along_the_surface(self):
+        dm = np.full((1, 9), 2.0, np.float32)
+        labels = np.zeros((1, 9), np.int32)
+        labels[0, 0], labels[0, 8] = 1, 2
+        out = kernels.grow_continuous(labels, dm, 0.04)
+        assert list(out[0]) == [1, 1, 1, 1, 1, 2, 2, 2, 2]  # the tie at column 4 goes to the seed scanned first
+
+    def test_no_growth_across_steps_or_holes(self):
+        dm = np.full((3, 9), 2.0, np.float32)
+        dm[:, 4] = 0  # a column without depth
+        dm[:, 7:] = 2.5  # and a step of 25 %
+        labels = np.zeros((3, 9), np.int32)
+        labels[1, 0] = 1
+        out = kernels.grow_continuous(labels, dm, 0.04)
+        assert (out[:, :4] == 1).all() and (out[:, 4:] == 0).all()
+        # a slope of 1 % a pixel is continuous under a 4 % jump, whatever its length
+        dm = (2.0 * 1.01 ** np.arange(40, dtype=np.float32))[None].astype(np.float32)
+        labels = np.zeros((1, 40), np.int32)
+        labels[0, 0] = 3
+        assert (kernels.grow_continuous(labels, dm, 0.04) == 3).all()

@@ -1,8 +1,9 @@
 """Numba kernels of the geometric segmenter (:mod:`dynslam_cli.motion.segment_geometric`): surface
 normals and the edge tests, one pass over the image each instead of numpy's whole-array
-temporaries.  float32 throughout, with numpy's order of operations (``np.cross``, a norm summed
+temporaries, float32 throughout, with numpy's order of operations (``np.cross``, a norm summed
 x, y, z, thresholds cast to float32 as numpy casts a Python scalar against a float32 array), so
-the edges are the ones the numpy expressions give, bit for bit (tests/test_motion_segment.py).
+the edges are the ones the numpy expressions give, bit for bit (tests/test_motion_segment.py);
+and the growth of segments through continuous depth (a breadth-first queue).
 They release the GIL: a run segments the next frame in a background thread (run/ahead.py)."""
 
 from __future__ import annotations
@@ -131,3 +132,48 @@ def crease_edges(n: np.ndarray, smooth: np.ndarray, offset: int, cos_max: float,
             if x + offset < w and smooth[y, x + offset] and _turns(n, y, x, y, x + offset, c):
                 edge[y, x] = True
                 edge[y, x + offset] = True
+
+
+@njit(cache=True)
+def grow_continuous(labels: np.ndarray, dm: np.ndarray, depth_jump: float) -> np.ndarray:
+    """Seeded region growing through continuous depth: every unlabelled pixel (``labels`` 0) with
+    depth (``dm`` > 0) that a 4-connected path of pixels with depth reaches from a labelled one
+    without a step over ``depth_jump``·d (d the nearer) takes the label of the nearest such seed
+    (breadth first, so in path length; ties go to the seed scanned first).  Returns a new int32
+    label image; pixels without depth and pixels cut off by depth steps stay 0."""
+    h, w = labels.shape
+    out = labels.astype(np.int32).copy()
+    queue = np.empty(h * w, np.int64)
+    tail = 0
+    for y in range(h):
+        for x in range(w):
+            if out[y, x] > 0 and dm[y, x] > 0:
+                queue[tail] = y * w + x
+                tail += 1
+    dj = np.float32(depth_jump)
+    head = 0
+    while head < tail:
+        idx = queue[head]
+        head += 1
+        y = idx // w
+        x = idx - y * w
+        dp = dm[y, x]
+        for k in range(4):
+            yy, xx = y, x
+            if k == 0:
+                yy = y - 1
+            elif k == 1:
+                yy = y + 1
+            elif k == 2:
+                xx = x - 1
+            else:
+                xx = x + 1
+            if yy < 0 or yy >= h or xx < 0 or xx >= w or out[yy, xx] > 0:
+                continue
+            dq = dm[yy, xx]
+            if dq <= 0 or abs(dp - dq) > dj * min(dp, dq):
+                continue
+            out[yy, xx] = out[y, x]
+            queue[tail] = yy * w + xx
+            tail += 1
+    return out

@@ -2,7 +2,8 @@
 
 :func:`checkable_depth` leaves out depth edges and space no recent keyframe saw, and says where
 "observed in front of the map" is evidence of motion (:func:`keyframe_visibility`);
-:func:`closest_rendered` forgives the map's blurred edges.  :func:`project_into` puts world points
+:func:`closest_rendered` forgives the map's blurred edges; :func:`bounded_extent` gives a mover the outline pixels
+that stand where recent keyframes saw empty space.  :func:`project_into` puts world points
 into a keyframe's camera (also used by :mod:`.stayed` and :mod:`.forget`).
 """
 
@@ -12,10 +13,14 @@ import numpy as np
 
 from dynslam_cli.geometry.camera import pixel_dirs, project, transform
 from dynslam_cli.geometry.lie import inv_np
+from dynslam_cli.motion import _instance_kernels as kernels
 from dynslam_cli.slam.keyframes import DEPTH_STRIDE, depth_edges
 
 # keyframes whose frusta count as 'observed space' for the check
 FRUSTUM_KEYFRAMES = 20
+# keyframes whose depth says where something new stands for a mover's outline (:func:`seen_through`): the last
+# three, half a second at 30 Hz with a keyframe every 5 frames (docs/experiments.md: the newest alone took less)
+SEEN_THROUGH_KEYFRAMES = 3
 
 
 def project_into(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int, border: int = 0):
@@ -139,3 +144,38 @@ def closest_rendered(rendered: np.ndarray, observed: np.ndarray, radius: int = 1
             best[better] = cand[better]
             err[better] = e[better]
     return np.where(obs > 0, best, rendered).astype(np.float32)
+
+
+def seen_through(depth: np.ndarray, where: np.ndarray, pose_c2w: np.ndarray, intr, keyframes,
+                 margin: float, newest: int = SEEN_THROUGH_KEYFRAMES) -> np.ndarray:
+    """(H, W) bool: the pixels ``where`` (with depth) whose 3-D point (at ``pose_c2w``) lies in space one of the
+    last ``newest`` keyframes saw empty: its whole depth map (``depth_raw_small``, movers included) reads more than
+    ``margin`` behind the point where the point lands in its image (a free-space violation: something stands there
+    now that was not there then).  Points no such keyframe saw through are False."""
+    d = np.asarray(depth, np.float32)
+    kfs = [kf for kf in list(keyframes)[-newest:] if kf.depth_raw_small is not None]
+    if not kfs:
+        return np.zeros(d.shape, bool)
+    w2c = np.stack([inv_np(np.asarray(kf.pose_c2w, np.float64)) for kf in kfs]).astype(np.float64)
+    small = np.stack([np.asarray(kf.depth_raw_small, np.float32) for kf in kfs])
+    return kernels.seen_through(d, np.ascontiguousarray(where, dtype=bool), np.asarray(pose_c2w, np.float64),
+                                float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), w2c, small,
+                                DEPTH_STRIDE, float(margin))
+
+
+def bounded_extent(ids: np.ndarray, extent: np.ndarray, depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes,
+                   margin: float) -> np.ndarray:
+    """The instance ids, with a segmentation's ``extent`` taken only where the observation contradicts what the
+    keyframes saw: a pixel the extent gives to another instance than ``ids`` does (an edge band or speck whose depth
+    continues that instance) takes the extent's instance where :func:`seen_through` (something new stands there),
+    and keeps its id elsewhere.  A static surface beside a mover keeps its own segment; the outline of something
+    that moved there goes with it.  Returns ``ids`` itself when nothing changes."""
+    where = (extent != ids) & (extent > 0)
+    if not where.any():
+        return ids
+    take = seen_through(depth, where, pose_c2w, intr, keyframes, margin)
+    if not take.any():
+        return ids
+    out = ids.copy()
+    out[take] = extent[take]
+    return out

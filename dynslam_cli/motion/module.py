@@ -5,6 +5,7 @@ stored instances of the keyframes so the map forgets what moved."""
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 from typing import Optional
 
 import numpy as np
@@ -12,6 +13,7 @@ import torch
 
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.motion.check import check_size, inconsistency_check
+from dynslam_cli.motion.checkable import bounded_extent
 from dynslam_cli.motion.classifier import MotionClassifier, ReplayBuffer, load_prior, update_with_replay
 from dynslam_cli.motion.encoders import make_encoder
 from dynslam_cli.motion.segment_geometric import GeometricSegmenter
@@ -74,6 +76,8 @@ class MotionModule:
         self.cfg = cfg
         self.m = cfg.motion if hasattr(cfg, "motion") else cfg
         self.intr = intrinsics_tuple(intrinsics)
+        fx, fy, cx, cy = self.intr
+        self._pinhole = SimpleNamespace(fx=fx, fy=fy, cx=cx, cy=cy)  # for checkable.bounded_extent
         self.device = torch.device(device) if not isinstance(device, torch.device) else device
         m = self.m
         run = getattr(cfg, "run", None)  # run.seed / run.threads (a bare MotionConfig: 0 / onnxruntime's default)
@@ -114,9 +118,9 @@ class MotionModule:
             final = np.maximum(p, pp)
         return dyn, final.astype(np.float32), pp
 
-    def _static_mask(self, ids: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    def _static_mask(self, ids: np.ndarray, dynamic: np.ndarray, extent=None) -> np.ndarray:
         """Pixels usable for tracking and mapping: outside every dynamic instance dilated by
-        ``motion.mask_dilation`` (of the image width)."""
+        ``motion.mask_dilation`` (of the image width), and outside its extent (not dilated)."""
         lut = np.ones(len(dynamic) + 1, bool)
         lut[1:] = ~dynamic
         static = lut[ids]
@@ -126,6 +130,8 @@ class MotionModule:
 
             k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
             static = cv2.dilate((~static).astype(np.uint8), k) == 0
+        if extent is not None:
+            static &= lut[extent]
         return static
 
     # --- per frame
@@ -142,7 +148,8 @@ class MotionModule:
                           {"segment": (t1 - t0) * 1e3, "encode": (t2 - t1) * 1e3})
 
     def observe(self, frame, pose_c2w_guess: np.ndarray, seen: Optional[Perception] = None) -> FrameInstances:
-        """The frame's instances classified (``seen``: its :meth:`perceive`, computed now when None)."""
+        """The frame's instances classified (``seen``: its :meth:`perceive`, computed now when None).  The
+        segmentation's extent, where it has one, waits in ``FrameInstances.grown`` for :meth:`bound_outline`."""
         p = self.perceive(frame) if seen is None else seen
         t2 = time.perf_counter()
         seg, emb = p.seg, p.embeddings
@@ -152,9 +159,24 @@ class MotionModule:
         t3 = time.perf_counter()
         return FrameInstances(
             frame_index=int(getattr(frame, "index", -1)), ids=seg.ids, embeddings=emb, centres=centres,
-            dynamic=dyn, probs=probs, static_mask=self._static_mask(seg.ids, dyn), class_ids=seg.class_ids,
-            prior_probs=pp, timings={**p.timings, "classify": (t3 - t2) * 1e3}, features=feats,
+            dynamic=dyn, probs=probs, static_mask=self._static_mask(seg.ids, dyn),
+            class_ids=seg.class_ids, prior_probs=pp, grown=seg.extent,
+            timings={**p.timings, "classify": (t3 - t2) * 1e3}, features=feats,
         )
+
+    def bound_outline(self, inst: FrameInstances, depth: np.ndarray, pose_c2w: np.ndarray, keyframes,
+                      dynamic: np.ndarray) -> np.ndarray:
+        """Once the frame is tracked (``pose_c2w``): ``inst.extent`` set to the part of the segmentation's extent that
+        stands where the last ``keyframes`` saw empty space (:func:`~dynslam_cli.motion.checkable.bounded_extent`),
+        and the pixels the map may learn from with the instances ``dynamic`` masked (ids dilated, extent not)."""
+        t0 = time.perf_counter()
+        if inst.grown is not None and len(keyframes):
+            extent = bounded_extent(inst.ids, inst.grown, depth, pose_c2w, self._pinhole, keyframes,
+                                    self.m.depth_threshold)
+            inst.extent = None if extent is inst.ids else extent
+        out = self._static_mask(inst.ids, dynamic, inst.extent)
+        inst.timings["classify"] = inst.timings.get("classify", 0.0) + (time.perf_counter() - t0) * 1e3
+        return out
 
     def _feats_of(self, inst: FrameInstances) -> np.ndarray:
         f = inst.features

@@ -12,9 +12,17 @@ Works at a reduced resolution (``motion.geometric_width``, 480 px by default):
    component join the nearest one;
 4. the id map is upsampled to the frame (nearest).
 
+Besides the ids (what the instances are encoded, judged and tracked on), a segmentation carries each
+segment's **extent** (``Segmentation.extent``): edge pixels and dropped specks join the component their
+depth continues instead of the nearest one (grown breadth first across 4-neighbour steps under
+``depth_jump``, however far: a band pixel beside a depth step joins the side at its depth, the specks a
+mover's creases and colours cut off join the mover), then holes within 6 px the nearest component.  A
+dynamic instance masks the part of its extent that stands where recent keyframes saw empty space
+(:func:`dynslam_cli.motion.checkable.bounded_extent`).
+
 The point image, the normals and the edge tests of steps 1–2 are numba kernels
-(:mod:`dynslam_cli.motion._segment_kernels`: the same bits as numpy's whole-array expressions); the
-filters, dilations, components and fill are OpenCV's.
+(:mod:`dynslam_cli.motion._segment_kernels`: the same bits as numpy's whole-array expressions), and so
+is the extent's growth; the filters, dilations, components and hole fill are OpenCV's.
 
 Planar structures (walls, floor, table tops) become segments of their own, separated at creases;
 objects standing in front of them are separated by the depth step (and their contact line by the
@@ -74,15 +82,20 @@ class GeometricSegmenter:
 
     def segment(self, rgb: Optional[np.ndarray], depth: np.ndarray) -> Segmentation:
         H, W = depth.shape[:2]
-        ids_small = self.segment_small(rgb, depth)
-        ids = cv2.resize(ids_small.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST).astype(np.int32) \
-            if ids_small.shape != (H, W) else ids_small
-        ids, _ = relabel(ids, self.min_instance_area)
-        k = int(ids.max())
-        return Segmentation(ids, -np.ones(k, np.int64), np.ones(k, np.float32))
 
-    def segment_small(self, rgb: Optional[np.ndarray], depth: np.ndarray) -> np.ndarray:
-        """Id map at the working resolution."""
+        def up(a):
+            return cv2.resize(a.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST).astype(np.int32) \
+                if a.shape != (H, W) else a
+
+        ids_small, extent_small = self.segment_small(rgb, depth, extent=True)
+        ids, old = relabel(up(ids_small), self.min_instance_area)
+        lut = np.zeros(max(int(extent_small.max()), int(old.max(initial=0))) + 1, np.int32)
+        lut[old] = np.arange(1, len(old) + 1, dtype=np.int32)
+        k = int(ids.max())
+        return Segmentation(ids, -np.ones(k, np.int64), np.ones(k, np.float32), extent=lut[up(extent_small)])
+
+    def segment_small(self, rgb: Optional[np.ndarray], depth: np.ndarray, extent: bool = False):
+        """Id map at the working resolution; with ``extent``, also the segments' extent (step 3's growth)."""
         H, W = depth.shape[:2]
         s = min(1.0, self.width / W)
         w, h = max(8, int(round(W * s))), max(8, int(round(H * s)))
@@ -125,14 +138,26 @@ class GeometricSegmenter:
         keep[0] = False
         lut = np.where(keep, np.arange(n_lab), 0).astype(np.int32)
         lab_map = lut[lab_map]
-        # edge pixels, dropped specks and pixels without depth (sensor holes, which the median
+        # ids: edge pixels, dropped specks and pixels without depth (sensor holes, which the median
         # filter widens) join the nearest kept component within fill_radius
-        unl = lab_map == 0
-        if unl.any() and keep.any():
+        ids = self._fill_nearest(lab_map, np.ones_like(valid)) if keep.any() else lab_map
+        if not extent:
+            return ids
+        # extent: edge pixels and dropped specks join the component their depth continues, then holes the
+        # nearest component within fill_radius
+        grown = kernels.grow_continuous(lab_map, dm, self.depth_jump)
+        return ids, (self._fill_nearest(grown, ~valid) if keep.any() else grown)
+
+    def _fill_nearest(self, lab_map: np.ndarray, may: np.ndarray) -> np.ndarray:
+        """``lab_map`` with its unlabelled pixels where ``may`` given to the nearest labelled pixel's
+        label within ``fill_radius``."""
+        out = lab_map.astype(np.int32).copy()
+        unl = out == 0
+        if unl.any():
             dist, nearest = cv2.distanceTransformWithLabels(unl.astype(np.uint8), cv2.DIST_L2, 3,
                                                             labelType=cv2.DIST_LABEL_PIXEL)
             # DIST_LABEL_PIXEL numbers the labelled (zero) pixels in row-major scan order starting at 1
-            pix_lab = np.concatenate([np.zeros(1, np.int32), lab_map[~unl]])
-            fill = unl & (dist <= self.fill_radius)
-            lab_map[fill] = pix_lab[nearest[fill]]
-        return lab_map.astype(np.int32)
+            pix_lab = np.concatenate([np.zeros(1, np.int32), out[~unl]])
+            fill = unl & may & (dist <= self.fill_radius)
+            out[fill] = pix_lab[nearest[fill]]
+        return out

@@ -14,11 +14,14 @@ from dynslam_cli.errors import DynslamError
 class Segmentation:
     """Instances of one image. ``ids``: H×W int32, 0 = background (pixels in no segment), 1..K the
     instances after pruning; ``class_ids``: (K,) int (-1 where the segmenter has no classes);
-    ``scores``: (K,) float32 confidences (1.0 for weightless segmenters)."""
+    ``scores``: (K,) float32 confidences (1.0 for weightless segmenters); ``extent``: H×W int32 or None,
+    each instance grown through continuous depth over the pixels ``ids`` leaves to the nearest segment
+    (the geometric segmenter's; None = none)."""
 
     ids: np.ndarray
     class_ids: np.ndarray
     scores: np.ndarray
+    extent: Optional[np.ndarray] = None
 
     @property
     def count(self) -> int:
@@ -60,16 +63,26 @@ class FrameInstances:
     prior_probs: Optional[np.ndarray] = None  # (K,) from the prior classifier, when configured
     timings: dict = field(default_factory=dict)  # component -> ms
     features: Optional[np.ndarray] = None  # (K, F) the classifier's input (embedding, + centre when configured)
+    # (H, W) int32: the segmentation's extent (Segmentation.extent), None where it has none
+    grown: Optional[np.ndarray] = None
+    # (H, W) int32: what each instance masks when dynamic (ids plus the part of ``grown`` that stands where recent
+    # keyframes saw empty space, decided at the tracked pose: MotionModule.bound_outline); None = ids
+    extent: Optional[np.ndarray] = None
 
     @property
     def count(self) -> int:
         return int(self.embeddings.shape[0])
 
+    @property
+    def mask_ids(self) -> np.ndarray:
+        """H×W int32: the pixels each instance masks when dynamic (``extent``, else ``ids``)."""
+        return self.ids if self.extent is None else self.extent
+
     def dynamic_mask(self) -> np.ndarray:
         """H×W bool: pixels of instances classified dynamic."""
         lut = np.zeros(self.count + 1, bool)
         lut[1:] = self.dynamic
-        return lut[self.ids]
+        return lut[self.mask_ids]
 
 
 @dataclass

@@ -88,6 +88,7 @@ class FrameLoop:
         t0 = time.perf_counter()
         inst = None if self.mm is None else self.mm.observe(frame, self._guess(frame), seen)
         static = None if inst is None else inst.static_mask
+        dyn_before = None if inst is None else inst.dynamic.copy()
         tr = self.slam.track(frame, static)
         t_track = tr.ms
         t_render = t_judge = t_keyframes = 0.0
@@ -140,11 +141,15 @@ class FrameLoop:
             rec["keyframe_rays_masked"] = masked
             rec["retracked"] = retracked
             self.records.append(rec)
-        n_kf = len(self.slam.keyframes)
         # The map and the backend's keyframe take the mask the frame was classified with before its check, not the
         # one the check left: the check's verdict reaches this keyframe at the next classifier update (forget.
         # refresh_keyframes) and every later frame's mask.  Mapping with the check's mask, or with what both call
-        # static, was measured worse on synth `tracking` at 5 and 4 run seeds of 5 (docs/experiments.md).
+        # static, was measured worse on synth `tracking` at 5 and 4 run seeds of 5 (docs/experiments.md).  Unlike
+        # tracking, the map (and the written mask) also leaves out a mover's outline where, at the tracked pose, it
+        # stands in space the last keyframes saw empty (MotionModule.bound_outline).
+        if inst is not None:
+            static = self.mm.bound_outline(inst, frame.depth, tr.pose_c2w, self.slam.keyframes, dyn_before)
+        n_kf = len(self.slam.keyframes)
         mr = self.slam.map(frame, static, None if inst is None else inst.ids)
         if inst is None:
             return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,
@@ -152,7 +157,7 @@ class FrameLoop:
         t1 = time.perf_counter()
         if len(self.slam.keyframes) > n_kf:
             kf = self.slam.keyframes[-1]
-            kf.near_ids = near_ids(inst.ids, kf.pixels, self.mm.m.mask_dilation)
+            kf.near_ids = near_ids(inst.mask_ids, kf.pixels, self.mm.m.mask_dilation)
             self.slam.keyframes.register_instances(kf.frame_id, *self.mm.keyframe_instances(inst))
         fid = self.slam.n_frames - 1
         if self.slam.keyframes.landmark_keyframes.index_of(fid) >= 0 and not self.slam.keyframes.has_instances(fid):
