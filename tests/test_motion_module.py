@@ -136,14 +136,16 @@ def test_module_end_to_end_person_learned_and_keyframes_forget():
     assert not inst0.static_mask[f0.gt == 1].mean() > 0.1
     assert inst0.static_mask[f0.gt == 0].mean() > 0.9
     # at the tracked pose: no keyframe says where something new stands: the ids mask
-    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [], inst0.dynamic), inst0.static_mask)
+    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [], inst0.static_mask, inst0.dynamic),
+                                  inst0.static_mask)
     assert inst0.extent is None
     # what is masked (and written as the frame's motion mask) is the person's extent where the keyframe saw the
     # room: its outline band too, not only its id's pixels; no wall pixel the keyframe saw as wall
-    for_map = mod.bound_outline(inst0, f0.depth, pose, [room_kf], inst0.dynamic)
+    for_map = mod.bound_outline(inst0, f0.depth, pose, [room_kf], inst0.static_mask, inst0.dynamic)
     assert not for_map[inst0.extent == pid].any() and (for_map <= inst0.static_mask).all()
-    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [room_kf], np.zeros_like(inst0.dynamic)),
-                                  np.ones_like(for_map))  # nothing dynamic: everything usable
+    none = np.zeros_like(inst0.dynamic)
+    np.testing.assert_array_equal(mod.bound_outline(inst0, f0.depth, pose, [room_kf], mod._static_mask(inst0.ids, none),
+                                                    none), np.ones_like(for_map))  # nothing dynamic: everything usable
     assert inst0.extent is not None and (inst0.mask_ids == inst0.extent).all()
     np.testing.assert_array_equal(inst0.dynamic_mask(), inst0.extent == pid)
     assert (inst0.extent == pid).sum() > (inst0.ids == pid).sum()

@@ -156,7 +156,7 @@ def seen_through(depth: np.ndarray, where: np.ndarray, pose_c2w: np.ndarray, int
     kfs = [kf for kf in list(keyframes)[-newest:] if kf.depth_raw_small is not None]
     if not kfs:
         return np.zeros(d.shape, bool)
-    w2c = np.stack([inv_np(np.asarray(kf.pose_c2w, np.float64)) for kf in kfs]).astype(np.float64)
+    w2c = np.stack([inv_np(np.asarray(kf.pose_c2w, np.float64)) for kf in kfs])
     small = np.stack([np.asarray(kf.depth_raw_small, np.float32) for kf in kfs])
     return kernels.seen_through(d, np.ascontiguousarray(where, dtype=bool), np.asarray(pose_c2w, np.float64),
                                 float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), w2c, small,

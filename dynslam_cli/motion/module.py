@@ -71,6 +71,13 @@ def instance_centres(depth: np.ndarray, ids: np.ndarray, k: int, intr: tuple, po
     return (c @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
 
+def _usable(dynamic: np.ndarray) -> np.ndarray:
+    """(K + 1,) bool by instance id (0 = background): True where the instance is not ``dynamic``."""
+    lut = np.ones(len(dynamic) + 1, bool)
+    lut[1:] = ~dynamic
+    return lut
+
+
 class MotionModule:
     def __init__(self, cfg, intrinsics, device: torch.device):
         self.cfg = cfg
@@ -121,8 +128,7 @@ class MotionModule:
     def _static_mask(self, ids: np.ndarray, dynamic: np.ndarray, extent=None) -> np.ndarray:
         """Pixels usable for tracking and mapping: outside every dynamic instance dilated by
         ``motion.mask_dilation`` (of the image width), and outside its extent (not dilated)."""
-        lut = np.ones(len(dynamic) + 1, bool)
-        lut[1:] = ~dynamic
+        lut = _usable(dynamic)
         static = lut[ids]
         r = dilation_radius(self.m.mask_dilation, ids.shape[1])
         if r > 0 and not static.all():
@@ -165,16 +171,17 @@ class MotionModule:
         )
 
     def bound_outline(self, inst: FrameInstances, depth: np.ndarray, pose_c2w: np.ndarray, keyframes,
-                      dynamic: np.ndarray) -> np.ndarray:
+                      static: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
         """Once the frame is tracked (``pose_c2w``): ``inst.extent`` set to the part of the segmentation's extent that
         stands where the last ``keyframes`` saw empty space (:func:`~dynslam_cli.motion.checkable.bounded_extent`),
-        and the pixels the map may learn from with the instances ``dynamic`` masked (ids dilated, extent not)."""
+        and the pixels the map may learn from: ``static`` (:meth:`_static_mask` of the instances ``dynamic``, the ids
+        dilated) less the extent of those instances (not dilated)."""
         t0 = time.perf_counter()
         if inst.grown is not None and len(keyframes):
             extent = bounded_extent(inst.ids, inst.grown, depth, pose_c2w, self._pinhole, keyframes,
                                     self.m.depth_threshold)
             inst.extent = None if extent is inst.ids else extent
-        out = self._static_mask(inst.ids, dynamic, inst.extent)
+        out = static if inst.extent is None else static & _usable(dynamic)[inst.extent]
         inst.timings["classify"] = inst.timings.get("classify", 0.0) + (time.perf_counter() - t0) * 1e3
         return out
 

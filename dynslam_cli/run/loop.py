@@ -148,7 +148,7 @@ class FrameLoop:
         # tracking, the map (and the written mask) also leaves out a mover's outline where, at the tracked pose, it
         # stands in space the last keyframes saw empty (MotionModule.bound_outline).
         if inst is not None:
-            static = self.mm.bound_outline(inst, frame.depth, tr.pose_c2w, self.slam.keyframes, dyn_before)
+            static = self.mm.bound_outline(inst, frame.depth, tr.pose_c2w, self.slam.keyframes, static, dyn_before)
         n_kf = len(self.slam.keyframes)
         mr = self.slam.map(frame, static, None if inst is None else inst.ids)
         if inst is None:
