@@ -37,8 +37,9 @@ def seen_through(depth: np.ndarray, where: np.ndarray, c2w: np.ndarray, fx: floa
                  kf_w2c: np.ndarray, kf_depth: np.ndarray, stride: int, margin: float) -> np.ndarray:
     """(H, W) bool: the pixels ``where`` with a depth > 0 whose point (camera ``c2w``, 4×4) lands, in front of and
     inside the image of one of the keyframes (``kf_w2c``: (K, 4, 4) world-to-camera; ``kf_depth``: (K, h, w) float32
-    depth maps every ``stride`` pixels, nearest), on a depth > 0 more than ``margin`` behind it.  The arithmetic of
-    :func:`dynslam_cli.motion.checkable.seen_through` (ray directions in float32, transforms in float64)."""
+    depth maps every ``stride`` pixels, nearest), on a depth > 0 more than ``margin`` behind it: the kernel of
+    :func:`dynslam_cli.motion.checkable.seen_through`, with the arithmetic of the numpy expression it replaces
+    (ray directions in float32, transforms in float64, :func:`~dynslam_cli.motion.checkable.project_into`)."""
     H, W = depth.shape
     out = np.zeros((H, W), np.bool_)
     nk, hs, ws = kf_depth.shape

@@ -78,6 +78,11 @@ def _usable(dynamic: np.ndarray) -> np.ndarray:
     return lut
 
 
+def _outside_extent(static: np.ndarray, dynamic: np.ndarray, extent: np.ndarray) -> np.ndarray:
+    """``static`` less the ``extent`` (H×W int32 instance map) of the instances ``dynamic``, not dilated."""
+    return static & _usable(dynamic)[extent]
+
+
 class MotionModule:
     def __init__(self, cfg, intrinsics, device: torch.device):
         self.cfg = cfg
@@ -128,17 +133,14 @@ class MotionModule:
     def _static_mask(self, ids: np.ndarray, dynamic: np.ndarray, extent=None) -> np.ndarray:
         """Pixels usable for tracking and mapping: outside every dynamic instance dilated by
         ``motion.mask_dilation`` (of the image width), and outside its extent (not dilated)."""
-        lut = _usable(dynamic)
-        static = lut[ids]
+        static = _usable(dynamic)[ids]
         r = dilation_radius(self.m.mask_dilation, ids.shape[1])
         if r > 0 and not static.all():
             import cv2
 
             k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
             static = cv2.dilate((~static).astype(np.uint8), k) == 0
-        if extent is not None:
-            static &= lut[extent]
-        return static
+        return static if extent is None else _outside_extent(static, dynamic, extent)
 
     # --- per frame
     def perceive(self, frame) -> Perception:
@@ -181,7 +183,7 @@ class MotionModule:
             extent = bounded_extent(inst.ids, inst.grown, depth, pose_c2w, self._pinhole, keyframes,
                                     self.m.depth_threshold)
             inst.extent = None if extent is inst.ids else extent
-        out = static if inst.extent is None else static & _usable(dynamic)[inst.extent]
+        out = static if inst.extent is None else _outside_extent(static, dynamic, inst.extent)
         inst.timings["classify"] = inst.timings.get("classify", 0.0) + (time.perf_counter() - t0) * 1e3
         return out
 
