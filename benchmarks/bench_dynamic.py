@@ -10,8 +10,9 @@ Modes: dynamic, static, dynamic-noreplay (replay buffer off: compare classifier 
 dynamic-yolo (the yolo-seg segmenter with ../shared/models/yolov8n-seg_deq_fp32.onnx).
 
 ``--device`` (default cpu) is every run's device. ``DYNSLAM_SHARED`` names another folder for ../shared.
-Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete unless --fresh); prints a
-Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2 threads far slower there).
+Runs go to results/bench/dynamic/<case>/<mode>/ (reused when complete, with the same config and code
+version, unless --fresh); prints a Markdown table. Use --threads 1 on a busy machine (OpenMP spin makes 2
+threads far slower there).
 
 ``--repeats N`` runs every case N times in rounds (each round all modes in turn; rounds after the first go to
 <mode>-r<k>/), so that speed is compared within one stretch of time (the shared machine drifts by

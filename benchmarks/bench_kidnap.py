@@ -10,7 +10,7 @@ about 36 % of the sequence, carries it away, sets it down by 76 % and leaves).
 Three runs of `synth/kidnap` (rendered on first use under --data-root and reused): dynamic mode
 with `motion.centre_feature=true` ("centre"), dynamic mode without it ("no-centre") and static
 mode ("static", the Co-SLAM baseline; leave it out with --variants centre,no-centre). They go to
-<out>/synth-kidnap-<W>x<H>-<N>f/<variant>/ and are reused when complete unless --fresh; the
+<out>/synth-kidnap-<W>x<H>-<N>f/<variant>/ and are reused when complete (same config and code version) unless --fresh; the
 numbers go to kidnap.json beside them.
 
 What the numbers mean:

@@ -14,8 +14,9 @@ clip is easy:
   between frames.
 
 The reversed view is written as symbolic links and re-stamped lists in a temporary folder (``--views-dir`` keeps it);
-nothing is copied. Each run goes to <out>/<view>/<preset>/<mode>-s<seed>/ (reused when complete unless --fresh). Prints a
-Markdown table: ATE cm of traj_est.txt, the still camera's, the worst frame's error, classifier updates, fps.
+nothing is copied. Each run goes to <out>/<view>/<preset>/<mode>-s<seed>/ (reused when complete, with the same
+config and code version, unless --fresh). Prints a Markdown table: ATE cm of traj_est.txt, the still camera's,
+the worst frame's error, classifier updates, fps.
 ``yolo-person`` needs ../shared/models/yolov8n-seg_deq_fp32.onnx.
 """
 
