@@ -29,32 +29,33 @@ def run_or_reuse(spec: str, sets: list[str], out: Path, fresh: bool, preset: str
     if fresh and out.exists():
         shutil.rmtree(out)
     cfg = resolve_config(spec, None, sets, preset=preset)
-    if done.is_file() and json.loads(done.read_text()).get("status") == "completed":
-        why = stale_run(out, cfg)
+    meta = json.loads(done.read_text()) if done.is_file() else {}
+    if meta.get("status") == "completed":
+        why = stale_run(out, cfg, meta)
         if why is None:
-            return json.loads(done.read_text())
+            return meta
         print(f"redoing {out}: {why}", file=sys.stderr)
     run_sequence(spec, cfg, out_dir=out, overwrite=True, progress=True)
     return json.loads(done.read_text())
 
 
-def stale_run(out: Path, cfg) -> str | None:
-    """Why the completed run in ``out`` does not stand for config ``cfg`` with this code (its config.yaml
-    differs in a key other than where files live, or its run.json names another code version); None when
-    it does.  Without this, a second ``--set run.seed=2`` into the same folder would report the first run."""
+def stale_run(out: Path, cfg, meta: dict) -> str | None:
+    """Why the completed run in ``out`` (``meta``: its run.json) does not stand for config ``cfg`` with this code
+    (its config.yaml differs in a key other than where files live, or ``meta`` names another code version); None
+    when it does.  Without this, a second ``--set run.seed=2`` into the same folder would report the first run."""
     from dynslam_cli.config.loader import config_from_file, config_to_dict
     from dynslam_cli.errors import DynslamError
-    from dynslam_cli.run.checkpoint import RESUME_FREE_KEYS, code_version, flatten
+    from dynslam_cli.run.checkpoint import code_version, differing_keys, flatten
 
     try:
         old = flatten(config_to_dict(config_from_file(out / "config.yaml")))
     except (OSError, DynslamError) as exc:
         return f"its config.yaml does not read ({exc})"
     new = flatten(config_to_dict(cfg))
-    diff = [k for k in sorted(set(old) | set(new)) if k not in RESUME_FREE_KEYS and old.get(k) != new.get(k)]
+    diff = differing_keys(old, new)
     if diff:
         return f"config key {diff[0]} differs (there {old.get(diff[0])!r}, asked {new.get(diff[0])!r})"
-    was = json.loads((out / "run.json").read_text()).get("versions", {}).get("dynslam")
+    was = meta.get("versions", {}).get("dynslam")
     if was != code_version():
         return f"code version differs (there {was}, now {code_version()})"
     return None

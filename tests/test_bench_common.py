@@ -15,35 +15,38 @@ SETS = ["synth.width=64", "synth.height=48", "synth.frames=3"]
 
 
 def _completed(out, cfg, code=None):
-    """A run folder as run_sequence leaves it: config.yaml and a completed run.json."""
+    """A run folder as run_sequence leaves it: config.yaml and a completed run.json (returned)."""
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
-    (out / "run.json").write_text(json.dumps({"status": "completed", "versions": {"dynslam": code or code_version()}}))
+    meta = {"status": "completed", "versions": {"dynslam": code or code_version()}}
+    (out / "run.json").write_text(json.dumps(meta))
+    return meta
 
 
 class TestStaleRun:
     def test_the_same_config_and_code_stand(self, tmp_path):
         cfg = resolve_config("synth/walker", None, SETS)
-        _completed(tmp_path, cfg)
-        assert bench.stale_run(tmp_path, cfg) is None
+        meta = _completed(tmp_path, cfg)
+        assert bench.stale_run(tmp_path, cfg, meta) is None
         # where files live is not what a run computes
-        assert bench.stale_run(tmp_path, resolve_config("synth/walker", None, SETS + ["data.root=/elsewhere"])) is None
+        elsewhere = resolve_config("synth/walker", None, SETS + ["data.root=/elsewhere"])
+        assert bench.stale_run(tmp_path, elsewhere, meta) is None
 
     def test_another_seed_or_code_does_not(self, tmp_path):
         cfg = resolve_config("synth/walker", None, SETS)
-        _completed(tmp_path, cfg)
-        why = bench.stale_run(tmp_path, resolve_config("synth/walker", None, SETS + ["run.seed=2"]))
+        meta = _completed(tmp_path, cfg)
+        why = bench.stale_run(tmp_path, resolve_config("synth/walker", None, SETS + ["run.seed=2"]), meta)
         assert why == "config key run.seed differs (there 0, asked 2)"
-        _completed(tmp_path, cfg, code="0.0.1+git.0000000")
-        assert bench.stale_run(tmp_path, cfg).startswith("code version differs (there 0.0.1+git.0000000")
+        meta = _completed(tmp_path, cfg, code="0.0.1+git.0000000")
+        assert bench.stale_run(tmp_path, cfg, meta).startswith("code version differs (there 0.0.1+git.0000000")
 
     def test_an_unreadable_config_does_not(self, tmp_path):
         cfg = resolve_config("synth/walker", None, SETS)
-        _completed(tmp_path, cfg)
+        meta = _completed(tmp_path, cfg)
         (tmp_path / "config.yaml").write_text("run:\n  no_such_key: 1\n")
-        assert bench.stale_run(tmp_path, cfg).startswith("its config.yaml does not read")
+        assert bench.stale_run(tmp_path, cfg, meta).startswith("its config.yaml does not read")
         (tmp_path / "config.yaml").unlink()
-        assert bench.stale_run(tmp_path, cfg).startswith("its config.yaml does not read")
+        assert bench.stale_run(tmp_path, cfg, meta).startswith("its config.yaml does not read")
 
 
 class TestRunOrReuse:

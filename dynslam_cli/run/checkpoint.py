@@ -86,6 +86,13 @@ def _show(v) -> str:
         return str(v)
 
 
+def differing_keys(old: dict, new: dict) -> list[str]:
+    """The keys of two flattened configs (:func:`flatten`) whose values differ, a key one lacks included, other than
+    :data:`RESUME_FREE_KEYS` (sorted)."""
+    return [k for k in sorted(set(old) | set(new))
+            if k not in RESUME_FREE_KEYS and old.get(k, _ABSENT) != new.get(k, _ABSENT)]
+
+
 def identity_mismatch(old: dict, new: dict) -> Optional[str]:
     """The first difference between two :func:`run_identity` records (sequence, config, code), or None."""
     so, sn = old.get("sequence") or {}, new["sequence"]
@@ -96,8 +103,7 @@ def identity_mismatch(old: dict, new: dict) -> Optional[str]:
         return (f"sequence {sn['spec']} differs (old {so.get('frames')} frames with list hash "
                 f"{str(so.get('frames_sha256'))[:12]}, new {sn['frames']} frames with {sn['frames_sha256'][:12]})")
     co, cn = old.get("config") or {}, new["config"]
-    diff = [k for k in sorted(set(co) | set(cn))
-            if k not in RESUME_FREE_KEYS and co.get(k, _ABSENT) != cn.get(k, _ABSENT)]
+    diff = differing_keys(co, cn)
     if diff:
         k = diff[0]
         more = f" and {len(diff) - 1} more ({', '.join(diff[1:4])})" if len(diff) > 1 else ""
