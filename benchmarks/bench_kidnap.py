@@ -33,7 +33,9 @@ under the old box (its footprint shrunk by tol) that the mesh has (the hole left
 the map may also continue the floor inside a box it kept, so read it beside the old-place
 coverage), and the mean fraction of
 the box's ground-truth pixels that the run's motion masks flagged as dynamic while it rested at
-each place (masks/*.png; 1.0 at the new place means the box was still forgotten there).
+each place (masks/*.png; 1.0 at the new place means the box was still forgotten there), and how many
+mesh vertices the run left out as surfaces the newest keyframe looking at them saw through (timing.json's
+``mesh_vertices_departed``; dynamic mode with ``run.forget_radius`` > 0).
 """
 
 from __future__ import annotations
@@ -265,7 +267,8 @@ def main() -> None:
             "ate_cm": 100 * ate.rmse_m, "updates": timing.get("classifier_updates") if dyn else None,
             "box_masked_old": mask_fraction(out, frames["old"], seq.stamps, box_id) if dyn else None,
             "box_masked_new": mask_fraction(out, frames["new"], seq.stamps, box_id) if dyn else None,
-            "first_pose_offset_mm": offset_mm, "mesh_vertices": int(len(mesh.vertices)), "fps": timing["fps"], "wall_s": wall,
+            "first_pose_offset_mm": offset_mm, "mesh_vertices": int(len(mesh.vertices)),
+            "mesh_vertices_departed": timing.get("mesh_vertices_departed"), "fps": timing["fps"], "wall_s": wall,
         })
 
     print(f"\nsynth/kidnap {w}x{h}, {n} frames: box rests at the old place in frames 0-{rest['old'][-1]}, "
@@ -277,11 +280,13 @@ def main() -> None:
               f"{fmt(r['updates'], 'd')} |")
     print(f"\npoints kept (seen, away from the static scene): old {len(kept['old'])}/{n_face['old']}, "
           f"new {len(kept['new'])}/{n_face['new']}\n")
-    print("| run | floor under old box | box masked at old place | box masked at new place | mesh vertices | run s |")
-    print("|---|---|---|---|---|---|")
+    print("| run | floor under old box | box masked at old place | box masked at new place | mesh vertices "
+          "| left out as seen through | run s |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['run']} | {fmt(r['old_floor_coverage'])} | {fmt(r['box_masked_old'])} | "
-              f"{fmt(r['box_masked_new'])} | {r['mesh_vertices']} | {r['wall_s']:.0f} |")
+              f"{fmt(r['box_masked_new'])} | {r['mesh_vertices']} | {fmt(r['mesh_vertices_departed'], 'd')} | "
+              f"{r['wall_s']:.0f} |")
 
     from dynslam_cli.utils.io import write_json_atomic
 

@@ -3,6 +3,7 @@ import torch
 
 from dynslam_cli.config import Config
 from dynslam_cli.map.encoding import OneBlob
+from dynslam_cli.map.mesh import drop_vertices
 from dynslam_cli.map.losses import sdf_free_losses
 from dynslam_cli.map.render import sample_depths, sdf_weights
 
@@ -160,3 +161,30 @@ def test_smoothness_from_the_ray_query_matches_the_separate_grid_call():
         grads.append(m.grid.embeddings.grad.clone())
     assert losses[0] > 0 and abs(losses[0] - losses[1]) <= 1e-6 * losses[0]
     assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-9)
+
+
+class TestDropVertices:
+    """map.mesh.drop_vertices: a mesh without some vertices, the faces using them and the vertices left bare."""
+
+    @staticmethod
+    def _quad():
+        import trimesh
+
+        v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 2, 2]], float)  # vertex 4 in no face
+        f = np.array([[0, 1, 2], [0, 2, 3]])
+        colors = np.array([[i * 10, 0, 0, 255] for i in range(5)], np.uint8)
+        return trimesh.Trimesh(vertices=v, faces=f, vertex_colors=colors, process=False)
+
+    def test_nothing_dropped_is_the_same_mesh(self):
+        m = self._quad()
+        assert drop_vertices(m, np.zeros(5, bool)) is m
+
+    def test_one_vertex_takes_its_faces_and_the_bare_vertices(self):
+        out = drop_vertices(self._quad(), np.array([False, False, False, True, False]))
+        assert np.array_equal(out.vertices, [[0, 0, 0], [1, 0, 0], [1, 1, 0]])
+        assert np.array_equal(out.faces, [[0, 1, 2]])
+        assert np.array_equal(out.visual.vertex_colors[:, 0], [0, 10, 20])
+
+    def test_every_face_dropped_leaves_an_empty_mesh(self):
+        out = drop_vertices(self._quad(), np.array([True, False, False, False, False]))
+        assert len(out.vertices) == 0 and len(out.faces) == 0

@@ -4,9 +4,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.forget import forget_departed, forget_near, near_ids, refresh_keyframes
+from dynslam_cli.motion.forget import departed_surface, forget_departed, forget_near, near_ids, refresh_keyframes
 from dynslam_cli.motion.types import CheckResult
-from dynslam_cli.slam.keyframes import Keyframe, KeyframeStore
+from dynslam_cli.slam.keyframes import DEPTH_STRIDE, Keyframe, KeyframeStore
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
@@ -116,3 +116,58 @@ def test_forget_departed_marks_the_rays_on_a_flagged_segment_that_left():
     empty = CheckResult(observed_moving=np.zeros(0, bool), forward=np.zeros(0, bool), backward=np.zeros(0, bool),
                         fractions=np.zeros(0, np.float32), background_forward=0.0, background_moving=False)
     assert departed(r=empty) == 0
+
+
+class TestDepartedSurface:
+    """departed_surface: the newest keyframe that decides about a point says whether it saw through it."""
+
+    CAM = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+
+    def _kf(self, depth, frame_id=0):
+        """A keyframe at the origin looking down +z whose whole depth map reads ``depth`` (m) everywhere
+        (an (H, W) array or a number; 0 = no reading)."""
+        d = np.broadcast_to(np.asarray(depth, np.float32), (48, 64))
+        kf = _keyframe([[0, 0]], [1.0])
+        kf.frame_id = frame_id
+        kf.depth_raw_small = d[::DEPTH_STRIDE, ::DEPTH_STRIDE].astype(np.float16)
+        return kf
+
+    @staticmethod
+    def _on_axis(*z):
+        return np.array([[0.0, 0.0, zz] for zz in z])  # at pixel (31.5, 23.5): inside, away from the border
+
+    def test_shape_and_no_keyframes(self):
+        out = departed_surface(self._on_axis(1.0, 2.0), [], self.CAM, 0.1)
+        assert out.shape == (2,) and out.dtype == bool and not out.any()
+        assert departed_surface(np.zeros((0, 3)), [self._kf(2.0)], self.CAM, 0.1).shape == (0,)
+
+    def test_seen_through_there_and_behind(self):
+        # the wall at 2 m: a point at 1 m was seen through, one at 1.95 m is on the wall, one at 3 m hidden by it
+        out = departed_surface(self._on_axis(1.0, 1.95, 3.0, 1.85), [self._kf(2.0)], self.CAM, 0.1)
+        assert out.tolist() == [True, False, False, True]
+
+    def test_the_newest_deciding_keyframe_wins(self):
+        old_wall, new_wall = self._kf(1.0, frame_id=0), self._kf(2.0, frame_id=5)
+        # the surface at 1 m was seen there first, then seen through: departed
+        assert departed_surface(self._on_axis(1.0), [old_wall, new_wall], self.CAM, 0.1).tolist() == [True]
+        # seen through first, then seen there (something came back): kept
+        assert departed_surface(self._on_axis(1.0), [new_wall, old_wall], self.CAM, 0.1).tolist() == [False]
+
+    def test_occluded_or_unread_leaves_it_to_older_keyframes(self):
+        through = self._kf(2.0, frame_id=0)
+        for newest in (self._kf(0.5, frame_id=5), self._kf(0.0, frame_id=5)):  # something in front / no depth
+            assert departed_surface(self._on_axis(1.0), [through, newest], self.CAM, 0.1).tolist() == [True]
+            assert not departed_surface(self._on_axis(1.0), [newest], self.CAM, 0.1).any()
+
+    def test_outside_the_image_is_undecided(self):
+        assert not departed_surface(np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), [self._kf(2.0)], self.CAM, 0.1).any()
+
+    def test_a_nearer_reading_around_the_pixel_keeps_an_edge(self):
+        # a depth edge through the point's pixel: the wall at 2 m on the right, a surface at 1 m on the left
+        d = np.full((48, 64), 2.0, np.float32)
+        d[:, :32] = 1.0
+        assert departed_surface(self._on_axis(1.0), [self._kf(d)], self.CAM, 0.1).tolist() == [False]
+        assert departed_surface(self._on_axis(1.0), [self._kf(d)], self.CAM, 0.1, reach=0).tolist() == [True]
+        d[:, :24] = 1.0
+        d[:, 24:] = 2.0
+        assert departed_surface(self._on_axis(1.0), [self._kf(d)], self.CAM, 0.1).tolist() == [True]

@@ -38,11 +38,23 @@ class TestFrameLoop:
         steps = [loop.process(f, str(f.index)) for f in frames]
         assert all(set(TIMED) <= set(s) and s["segment"] == 0.0 and s["frame"] > 0 for s in steps)
         assert np.array_equal(slam.trajectory(), ref.trajectory()) and len(slam.keyframes) == len(ref.keyframes)
+        mesh, dropped = loop.mesh(0.05)  # static mode forgets nothing, in the mesh neither
+        assert dropped == 0 and np.array_equal(mesh.vertices, slam.extract_mesh(0.05).vertices)
         assert loop.state_dict() == {"motion": None, "records": []}
 
 
 def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypatch):
     monkeypatch.setattr("dynslam_cli.run.loop.RETRACK_FRACTION", 0.0001)
+    from dynslam_cli.motion import forget
+
+    departed = []
+
+    def spy(*a, **k):  # what the mesh leaves out as seen through
+        out = forget.departed_surface(*a, **k)
+        departed.append(int(out.sum()))
+        return out
+
+    monkeypatch.setattr("dynslam_cli.run.loop.departed_surface", spy)
     out = tmp_path / "dyn"
     res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "dynamic", "--out", str(out),
                                    "--save-masks", "-q"] + TINY)
@@ -69,6 +81,7 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypat
     newly_dynamic = any(lab and not pre for r in recs for lab, pre in zip(r["labels"], r["predicted_before"], strict=True))
     assert timing["retracked_frames"] >= 1 or not newly_dynamic
     assert isinstance(timing["keyframe_rays_gone"], int) and timing["keyframe_rays_gone"] >= 0
+    assert len(departed) == 1 and timing["mesh_vertices_departed"] == departed[0]
     assert _traj(out / "traj_est.txt").shape == (10, 8)
 
 

@@ -62,3 +62,21 @@ def extract_mesh(model, observed_pts: np.ndarray, voxel: float, device, dilate_m
     rgb = query(model, verts, device, color=True)
     colors = np.concatenate([(rgb * 255).clip(0, 255).astype(np.uint8), np.full((len(verts), 1), 255, np.uint8)], 1)
     return trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)
+
+
+def drop_vertices(mesh, drop: np.ndarray):
+    """``mesh`` without the vertices ``drop`` (bool, one per vertex), the faces that use them and the
+    vertices left without a face."""
+    import trimesh
+
+    drop = np.asarray(drop, bool)
+    if not drop.any():
+        return mesh
+    keep_f = ~drop[np.asarray(mesh.faces)].any(1) if len(mesh.faces) else np.zeros(0, bool)
+    faces = np.asarray(mesh.faces)[keep_f]
+    used = np.zeros(len(mesh.vertices), bool)
+    used[faces.ravel()] = True
+    new_index = np.cumsum(used) - 1
+    colors = mesh.visual.vertex_colors[used] if mesh.visual.kind == "vertex" else None
+    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices)[used], faces=new_index[faces],
+                           vertex_colors=colors, process=False)

@@ -5,6 +5,8 @@
   and the backend drops the landmarks made on them; reclassified static rays are usable again.
 - ``gone`` (never usable again): rays on the surface of what the backward check saw leave
   (:func:`forget_departed` with :func:`forget_near`).
+- The exported mesh: surfaces the newest keyframe looking at them saw through
+  (:func:`departed_surface`), where what the map still holds was not seen to leave.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from dynslam_cli.geometry.camera import pixel_dirs, transform
+from dynslam_cli.motion.checkable import project_into
+from dynslam_cli.slam.keyframes import DEPTH_STRIDE
 
 
 def refresh_keyframes(keyframes, motion) -> int:
@@ -106,3 +110,42 @@ def forget_departed(res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: n
     pw = transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
     return forget_near(keyframes, pw, intr, radius)
 
+
+def departed_surface(points: np.ndarray, keyframes, intr, margin: float, reach: int = 1) -> np.ndarray:
+    """(N,) bool: the world ``points`` (a mesh's vertices) that the newest keyframe deciding about them saw
+    through: a departed surface, which the mesh should not show.
+
+    The keyframes are asked newest first, each with its whole depth map (``depth_raw_small``, movers
+    included, within the sensor's usable range).  Where a point lands in a keyframe's
+    image, a reading within ``margin`` of the point's depth says the surface is there (kept); readings at
+    and around the pixel (``reach`` cells of the subsampled map on every side) that all lie more than
+    ``margin`` behind it say the keyframe saw through it (departed); otherwise something stood in front
+    or nothing was read, and older keyframes decide.  Points no keyframe decides are kept: only the
+    newest observation of a place overrules the map."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    departed = np.zeros(len(pts), bool)
+    todo = np.arange(len(pts))
+    W, H = int(intr.width), int(intr.height)
+    for kf in reversed(list(keyframes)):
+        if not len(todo):
+            break
+        if kf.depth_raw_small is None:
+            continue
+        small = np.asarray(kf.depth_raw_small, np.float32)
+        valid = small > 0
+        hs, ws = small.shape
+        pc, u, v, inside = project_into(pts[todo], kf.pose_c2w, intr, W, H)
+        iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+        iv = np.clip(np.round(np.where(inside, v, 0) / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+        z = pc[:, 2]
+        d = np.where(valid, small, 0.0)[iv, iu]
+        there = inside & (d > 0) & (np.abs(d - z) <= margin)
+        pad = np.pad(np.where(valid, small, np.inf), reach, constant_values=np.inf)
+        nearest = np.full(len(todo), np.inf, np.float32)
+        for dy in range(2 * reach + 1):
+            for dx in range(2 * reach + 1):
+                nearest = np.minimum(nearest, pad[iv + dy, iu + dx])
+        through = inside & ~there & np.isfinite(nearest) & (nearest - z > margin)
+        departed[todo[through]] = True
+        todo = todo[~(there | through)]
+    return departed

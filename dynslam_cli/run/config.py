@@ -28,5 +28,6 @@ class RunConfig:
                                  "motion.depth_threshold.", min=0)
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
-                               "does not recognise in its keyframe crops); 0 = off (the paper forgets through the "
+                               "does not recognise in its keyframe crops), and the mesh leaves out surfaces the newest "
+                               "keyframe looking at them saw through; 0 = off (the paper forgets through the "
                                "classifier only).", min=0)

@@ -25,7 +25,8 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
-from dynslam_cli.motion.forget import forget_departed, near_ids, refresh_keyframes
+from dynslam_cli.map.mesh import drop_vertices
+from dynslam_cli.motion.forget import departed_surface, forget_departed, near_ids, refresh_keyframes
 from dynslam_cli.motion.reprojection import moving_by_reprojection
 from dynslam_cli.motion.stayed import stayed_put, window_frames
 from dynslam_cli.slam.frontend import first_pose
@@ -179,6 +180,17 @@ class FrameLoop:
         }
 
     # ------------------------------------------------------------------ outputs and state
+    def mesh(self, voxel: float):
+        """The map's mesh at ``voxel`` size and how many of its vertices were left out: in dynamic mode with
+        departed surfaces forgotten (``run.forget_radius`` > 0), the surfaces the newest keyframe looking at them
+        saw through by more than the map's truncation (:func:`~dynslam_cli.motion.forget.departed_surface`)."""
+        mesh = self.slam.extract_mesh(voxel)
+        if self.mm is None or self.forget_radius <= 0 or not len(mesh.vertices):
+            return mesh, 0
+        drop = departed_surface(np.asarray(mesh.vertices), self.slam.keyframes, self.slam.intr,
+                                self.slam.model.truncation)
+        return drop_vertices(mesh, drop), int(drop.sum())
+
     @staticmethod
     def _write_png(path: Path, image: np.ndarray) -> None:
         import cv2

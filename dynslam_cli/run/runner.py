@@ -299,7 +299,7 @@ class _Run:
         paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, traj)
         if cfg.run.mesh:
             _say(self.progress, f"extracting the mesh ({cfg.run.mesh_resolution} m voxels)...")
-            mesh = slam.extract_mesh(cfg.run.mesh_resolution)
+            mesh, mesh_dropped = loop.mesh(cfg.run.mesh_resolution)
             with atomic_path(out / "mesh.ply") as tmp:
                 mesh.export(tmp, file_type="ply", encoding="binary")
             paths["mesh"] = out / "mesh.ply"
@@ -329,6 +329,8 @@ class _Run:
             timing["retracked_frames"] = sum(1 for r in loop.records if r.get("retracked"))
             # rays forgotten for good (run.forget_radius), counted from the keyframes
             timing["keyframe_rays_gone"] = int(sum(int(k.gone.sum()) for k in slam.keyframes if k.gone is not None))
+            if cfg.run.mesh:  # mesh vertices on surfaces the newest keyframe looking at them saw through (loop.mesh)
+                timing["mesh_vertices_departed"] = mesh_dropped
         paths["timing"] = write_json_atomic(out / "timing.json", timing)
         if slam.events:
             paths["events"] = write_json_atomic(out / "tracking_events.json", slam.events)
