@@ -4,8 +4,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.checkable import bounded_extent, checkable_depth, closest_rendered, keyframe_visibility, seen_through
-from dynslam_cli.slam.keyframes import subsample_depth
+from dynslam_cli.motion.checkable import (bounded_extent, checkable_depth, closest_rendered, depth_cell, keyframe_visibility,
+                                          seen_through)
+from dynslam_cli.slam.keyframes import DEPTH_STRIDE, subsample_depth
 
 INTR = SimpleNamespace(fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
@@ -254,3 +255,14 @@ class TestBoundedExtent:
         ext = ids.copy()
         ext[:5] = 2
         assert bounded_extent(ids, ext, d, np.eye(4), INTR_WH, [_kf(d)], 0.3) is ids
+
+
+def test_depth_cell_is_the_nearest_subsampled_pixel_clipped_to_the_map():
+    u = np.array([0.0, 1.9, 2.1, 7.0, 1000.0, -5.0])
+    v = np.array([0.0, 0.0, 6.0, 9.9, 1000.0, -5.0])
+    iv, iu = depth_cell(u, v, (3, 4))
+    assert DEPTH_STRIDE == 4 and iv.dtype == np.int64 and iu.dtype == np.int64
+    assert iu.tolist() == [0, 0, 1, 2, 3, 0] and iv.tolist() == [0, 0, 2, 2, 2, 0]
+    small = subsample_depth(np.arange(12 * 16, dtype=np.float32).reshape(12, 16))
+    iv, iu = depth_cell(np.array([8.0]), np.array([4.0]), small.shape)  # a kept pixel finds itself
+    assert float(small[iv[0], iu[0]]) == 4 * 16 + 8

@@ -4,7 +4,8 @@
 "observed in front of the map" is evidence of motion (:func:`keyframe_visibility`);
 :func:`closest_rendered` forgives the map's blurred edges; :func:`bounded_extent` gives a mover the outline pixels
 that stand where recent keyframes saw empty space.  :func:`project_into` puts world points
-into a keyframe's camera (also used by :mod:`.stayed` and :mod:`.forget`).
+into a keyframe's camera and :func:`depth_cell` finds them in its subsampled depth map (both also used by
+:mod:`.stayed` and :mod:`.forget`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,15 @@ def project_into(world: np.ndarray, pose_c2w: np.ndarray, intr, W: int, H: int, 
     b = max(0, int(border))
     inside = (z > 0.05) & (u >= b) & (u <= W - 1 - b) & (v >= b) & (v <= H - 1 - b)
     return pc, u, v, inside
+
+
+def depth_cell(u: np.ndarray, v: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column (int64) of the pixels ``u``, ``v`` in a keyframe's depth map kept every
+    :data:`DEPTH_STRIDE` pixels (of ``shape``): the nearest cell, clipped to the map."""
+    hs, ws = shape
+    iv = np.clip(np.round(v / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+    iu = np.clip(np.round(u / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
+    return iv, iu
 
 
 def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes, step: int = 4,
@@ -76,10 +86,8 @@ def keyframe_visibility(depth: np.ndarray, pose_c2w: np.ndarray, intr, keyframes
         frustum[todo[inside]] = True
         small = kf.depth_small
         if small is not None and inside.any():
-            hs, ws = small.shape
             idx = np.flatnonzero(inside)
-            iu = np.clip(np.round(u[idx] / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
-            iv = np.clip(np.round(v[idx] / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+            iv, iu = depth_cell(u[idx], v[idx], small.shape)
             d_kf = small[iv, iu].astype(np.float32)
             inside[idx[(d_kf <= 0) | (d_kf < pc[idx, 2] - occlusion_margin)]] = False
         observed[todo[inside]] = True

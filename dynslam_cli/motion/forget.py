@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from dynslam_cli.geometry.camera import pixel_dirs, transform
-from dynslam_cli.motion.checkable import project_into
-from dynslam_cli.slam.keyframes import DEPTH_STRIDE
+from dynslam_cli.motion.checkable import depth_cell, project_into
 
 
 def refresh_keyframes(keyframes, motion) -> int:
@@ -133,10 +132,8 @@ def departed_surface(points: np.ndarray, keyframes, intr, margin: float, reach: 
             continue
         small = np.asarray(kf.depth_raw_small, np.float32)
         valid = small > 0
-        hs, ws = small.shape
         pc, u, v, inside = project_into(pts[todo], kf.pose_c2w, intr, W, H)
-        iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
-        iv = np.clip(np.round(np.where(inside, v, 0) / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+        iv, iu = depth_cell(np.where(inside, u, 0), np.where(inside, v, 0), small.shape)
         z = pc[:, 2]
         d = np.where(valid, small, 0.0)[iv, iu]
         there = inside & (d > 0) & (np.abs(d - z) <= margin)

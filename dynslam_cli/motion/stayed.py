@@ -12,8 +12,7 @@ from typing import Optional
 import numpy as np
 
 from dynslam_cli.geometry.camera import pixel_dirs, transform
-from dynslam_cli.motion.checkable import project_into
-from dynslam_cli.slam.keyframes import DEPTH_STRIDE
+from dynslam_cli.motion.checkable import depth_cell, project_into
 
 # The frame rate that turns ``run.still_seconds`` into frames is measured over this many of the last frames.
 RATE_FRAMES = 31
@@ -53,9 +52,7 @@ def stationary_instances(depth: np.ndarray, ids: np.ndarray, pose_c2w: np.ndarra
     for kf in kfs:
         pc, u, v, inside = project_into(world, kf.pose_c2w, intr, W, H)
         small = kf.depth_raw_small
-        hs, ws = small.shape
-        iu = np.clip(np.round(np.where(inside, u, 0) / DEPTH_STRIDE).astype(np.int64), 0, ws - 1)
-        iv = np.clip(np.round(np.where(inside, v, 0) / DEPTH_STRIDE).astype(np.int64), 0, hs - 1)
+        iv, iu = depth_cell(np.where(inside, u, 0), np.where(inside, v, 0), small.shape)
         d_kf = small[iv, iu].astype(np.float32)
         seen = inside & (d_kf > 0) & (d_kf >= pc[:, 2] - tolerance)  # not hidden behind something nearer
         agree = seen & (np.abs(d_kf - pc[:, 2]) <= tolerance)
