@@ -52,6 +52,8 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert np.allclose(np.linalg.norm(traj[:, 4:], axis=1), 1, atol=1e-5)
     # the backend's trajectory before its centres were smoothed, beside it (6 frames: too few to smooth)
     assert np.array_equal(_traj(out / "traj_unsmoothed.txt"), traj)
+    online = _traj(out / "traj_online.txt")  # each frame's pose as it was when the frame was done
+    assert online.shape == (6, 8) and np.allclose(online[:, 0], traj[:, 0]) and np.allclose(online[0], traj[0])
     timing = json.loads((out / "timing.json").read_text())
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
     assert set(timing["smoothing"]) == {"q_m2_s3", "noise_sd_m", "downweighted_frames", "refined_frames"}
@@ -78,6 +80,7 @@ def test_resume_gives_the_same_trajectory(clip, tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads((part / "run.json").read_text())["status"] == "completed"
     assert np.allclose(_traj(full / "traj_est.txt"), _traj(part / "traj_est.txt"), atol=1e-6)
+    assert np.allclose(_traj(full / "traj_online.txt"), _traj(part / "traj_online.txt"), atol=1e-6)
 
 
 def test_bad_input_exits_2_with_one_line(clip, tmp_path):

@@ -135,6 +135,7 @@ def test_dynamic_run_at_two_threads_equals_the_frames_in_order(walker, tmp_path)
     finally:
         torch.set_num_threads(old)
     assert np.allclose(_traj(out / "traj_unsmoothed.txt")[:, 1:4], traj[:, :3, 3], atol=1e-6)
+    assert np.allclose(_traj(out / "traj_online.txt")[:, 1:4], np.array(slam.online)[:, :3, 3], atol=1e-6)
     updates = [json.loads(ln) for ln in (out / "classifier_updates.jsonl").read_text().splitlines()]
     assert [u["labels"] for u in updates] == [r["labels"] for r in loop.records]
 

@@ -39,6 +39,28 @@ def test_state_dict_round_trip_and_resume_equality():
     ta, tc = a.trajectory(), c.trajectory()
     assert ta.shape == (5, 4, 4)
     assert np.array_equal(ta, tc), np.abs(ta - tc).max()  # a resumed run continues identically
+    assert np.array_equal(np.array(a.online), np.array(c.online))  # and so do the poses each frame had when done
+
+
+def test_online_poses_are_each_frames_pose_when_it_was_done():
+    """SLAM.online: frame i's pose as map() of frame i left it; later bundle adjustments move the
+    trajectory, not these."""
+    cfg = tiny_config(**{"mapping.first_iters": 5, "tracking.iters": 2, "mapping.iters": 2,
+                         "mapping.every": 2, "mapping.keyframe_every": 2})
+    slam = SLAM(cfg, INTR, torch.device("cpu"))
+    seen = []
+    for i, p in enumerate(trajectory(4, step=0.01)):
+        slam.process(ToyFrame(i, p, INTR))
+        seen.append(slam.poses[i].copy())
+    assert len(slam.online) == 4 and all(np.array_equal(a, b) for a, b in zip(slam.online, seen, strict=True))
+    slam.poses[1][:3, 3] += 0.05  # as a later bundle adjustment would move it
+    assert np.array_equal(slam.online[1], seen[1])  # copies: what the frame had stays
+    old = slam.state_dict()
+    del old["online"]  # a checkpoint from before: the earlier frames' online poses are unknown
+    fresh = SLAM(cfg, INTR, torch.device("cpu"))
+    fresh.load_state_dict(old)
+    fresh.process(ToyFrame(4, trajectory(5, step=0.01)[4], INTR))
+    assert fresh.online is None
 
 
 def test_process_tracks_then_maps_each_frame():

@@ -297,6 +297,8 @@ class _Run:
                          "noise_sd_m": sm.noise_sd, "downweighted_frames": sm.downweighted,
                          "refined_frames": int(refined)}
         paths["traj"] = write_tum(out / "traj_est.txt", self.seq.stamps, traj)
+        if slam.online is not None and len(slam.online) == len(traj):  # what a robot would have had, frame by frame
+            paths["traj_online"] = write_tum(out / "traj_online.txt", self.seq.stamps, np.array(slam.online))
         if cfg.run.mesh:
             _say(self.progress, f"extracting the mesh ({cfg.run.mesh_resolution} m voxels)...")
             mesh, mesh_dropped = loop.mesh(cfg.run.mesh_resolution)

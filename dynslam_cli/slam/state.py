@@ -94,6 +94,7 @@ class SlamState:
         self.kf_of: list[int] = []               # keyframe frame id each frame is expressed against
         self.timestamps: list[float] = []
         self.events: list[dict] = []
+        self.online: Optional[list[np.ndarray]] = []  # each frame's pose when it was done (None: not all known)
         seed = int(cfg.run.seed)
         self.rng = np.random.default_rng(seed)
         self.tgen = torch.Generator(device=self.device)

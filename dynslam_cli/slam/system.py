@@ -80,7 +80,10 @@ class SLAM(SlamState):
         if cur is None or cur.idx != self.n_frames - 1:
             raise DynslamError("SLAM.map() must follow track() of the same frame")
         self.frontend.set_mask(cur, mask)
-        return self.mapper.map(frame, cur, instance_ids)
+        res = self.mapper.map(frame, cur, instance_ids)
+        if self.online is not None:  # the frame's pose as it leaves the frame's processing (its keyframe's BA included)
+            self.online.append(self.poses[cur.idx].copy())
+        return res
 
     def process(self, frame, mask=None, instance_ids=None) -> FrameResult:
         t0 = time.perf_counter()
@@ -152,6 +155,7 @@ class SLAM(SlamState):
             "kf_of": list(self.kf_of),
             "timestamps": list(self.timestamps),
             "events": list(self.events),
+            "online": None if self.online is None else np.array(self.online).reshape(-1, 4, 4),
             "rng": self.rng.bit_generator.state,
             "tgen": self.tgen.get_state().cpu(),
             "prev_depth": None if prev_depth is None else prev_depth.copy(),
@@ -170,6 +174,8 @@ class SLAM(SlamState):
         self.kf_of = list(d["kf_of"])
         self.timestamps = list(d["timestamps"])
         self.events = list(d["events"])
+        online = d.get("online")  # a checkpoint from before: the earlier frames' online poses are not known
+        self.online = None if online is None else [np.array(p, np.float64) for p in online]
         self.rng.bit_generator.state = d["rng"]
         self.tgen.set_state(d["tgen"])
         self.cur = None
