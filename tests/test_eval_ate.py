@@ -202,6 +202,20 @@ def test_evaluate_run_writes_files(tmp_path, gt_file):
         evaluate_run_ate(tmp_path / "missing")
 
 
+def test_evaluate_run_online_scores_traj_online_beside_the_final(tmp_path, gt_file):
+    run = _fake_run(tmp_path / "run", gt_file, est_xyz_noise=0.001)
+    with pytest.raises(DynslamError, match="traj_online.txt not found"):
+        evaluate_run_ate(run, online=True, plot=False)
+    t, xyz, q = make_gt()
+    write_tum(run / "traj_online.txt", t, xyz + 0.05 * np.random.default_rng(1).standard_normal(xyz.shape), q)
+    final = evaluate_run_ate(run, plot=False)
+    online = evaluate_run_ate(run, online=True)
+    assert online.rmse_m > 10 * final.rmse_m  # each file scored on its own
+    assert json.loads((run / "ate.json").read_text())["rmse_m"] == pytest.approx(final.rmse_m)
+    assert json.loads((run / "ate_online.json").read_text())["rmse_m"] == pytest.approx(online.rmse_m)
+    assert (run / "ate_online.png").is_file()
+
+
 def test_cli_eval_ate(tmp_path, gt_file):
     from typer.testing import CliRunner
 
@@ -212,6 +226,10 @@ def test_cli_eval_ate(tmp_path, gt_file):
     assert res.exit_code == 0, res.output
     assert json.loads((run / "ate.json").read_text())["alignment"] == "sim3"
     assert "ATE RMSE" in res.output
+    t, xyz, q = make_gt()
+    write_tum(run / "traj_online.txt", t, xyz, q)
+    res = CliRunner().invoke(app, ["eval-ate", str(run), "--online", "--no-plot"])
+    assert res.exit_code == 0 and "online ATE RMSE" in res.output and (run / "ate_online.json").is_file()
     (run / "traj_est.txt").write_text("garbage\n")
     res = CliRunner().invoke(app, ["eval-ate", str(run)])
     assert res.exit_code == 2 and "error:" in res.output and "line 1" in res.output

@@ -41,6 +41,8 @@ def register(app: typer.Typer) -> None:
         align: Optional[str] = typer.Option(None, "--align", help="se3 (default, eval.align), sim3, origin or none."),
         max_diff: Optional[float] = typer.Option(None, "--max-diff", help="Max time difference (s), eval.max_time_diff."),
         plot: bool = typer.Option(True, "--plot/--no-plot", help="Write ate.png."),
+        online: bool = typer.Option(False, "--online", help="Score traj_online.txt (each frame's pose when it was "
+                                    "done) into ate_online.json / .png instead."),
         include_incomplete: bool = IncludeOpt,
     ) -> None:
         """ATE RMSE (evo APE on translations) of each run; writes ate.json and ate.png."""
@@ -48,8 +50,9 @@ def register(app: typer.Typer) -> None:
 
         for d in _runs_to_evaluate(run_dirs, include_incomplete):
             r = evaluate_run_ate(d, gt=gt, align=align, max_diff=max_diff, plot=plot,
-                                 include_incomplete=include_incomplete)
-            typer.echo(f"{d}: ATE RMSE {r.rmse_m:.4f} m ({r.alignment}, {r.matched}/{r.est_poses} poses matched; "
+                                 include_incomplete=include_incomplete, online=online)
+            what = "online ATE RMSE" if online else "ATE RMSE"
+            typer.echo(f"{d}: {what} {r.rmse_m:.4f} m ({r.alignment}, {r.matched}/{r.est_poses} poses matched; "
                        f"still camera {r.rmse_still_m:.4f} m)")
 
     @app.command("eval-mesh")

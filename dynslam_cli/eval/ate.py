@@ -173,24 +173,26 @@ def compute_ate(est_file: str | Path, gt_file: str | Path, align: str = "se3",
 
 def evaluate_run_ate(run_dir: str | Path, gt: Optional[str | Path] = None, align: Optional[str] = None,
                      max_diff: Optional[float] = None, plot: bool = True,
-                     include_incomplete: bool = False) -> AteResult:
-    """ATE of a run folder: reads traj_est.txt, writes ate.json (and ate.png).
+                     include_incomplete: bool = False, online: bool = False) -> AteResult:
+    """ATE of a run folder: reads traj_est.txt, writes ate.json (and ate.png); ``online``: reads
+    traj_online.txt (each frame's pose when it was done), writes ate_online.json (and ate_online.png).
 
     A run whose run.json is not completed is an error unless ``include_incomplete``.
     """
     run_dir = runs.require_completed(run_dir, include_incomplete)
     cfg = runs.eval_config_for(run_dir)
-    est_file = run_dir / "traj_est.txt"
+    name, out = ("traj_online.txt", "ate_online") if online else ("traj_est.txt", "ate")
+    est_file = run_dir / name
     if not est_file.is_file():
-        raise DynslamError(f"estimated trajectory traj_est.txt not found in run folder {run_dir}")
+        raise DynslamError(f"estimated trajectory {name} not found in run folder {run_dir}")
     if gt is None:
         gt = runs.groundtruth_path(run_dir)
         if gt is None:
             raise DynslamError(f"no ground truth for run {run_dir}: run.json has no sequence.groundtruth; pass --gt FILE")
     res = compute_ate(est_file, gt, align or cfg.align, max_diff if max_diff is not None else cfg.max_time_diff)
-    write_json_atomic(run_dir / "ate.json", res.to_json())
+    write_json_atomic(run_dir / f"{out}.json", res.to_json())
     if plot:
         from dynslam_cli.eval.plots import plot_ate
 
-        plot_ate(res, run_dir / "ate.png", run_dir=run_dir)
+        plot_ate(res, run_dir / f"{out}.png", run_dir=run_dir)
     return res
