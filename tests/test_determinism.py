@@ -30,7 +30,7 @@ walker = walker_fixture(80, 60, 7)
 
 def _outputs(run) -> dict:
     """sha1 of every result file that must repeat (not run.json, timing.json: times)."""
-    files = [run / "traj_est.txt", run / "mesh.ply", run / "classifier_updates.jsonl"]
+    files = [run / "traj_est.txt", run / "mesh.ply", run / "classifier_updates.jsonl", run / "frames.jsonl"]
     files += sorted((run / "masks").glob("*.png")) if (run / "masks").is_dir() else []
     return {str(p.relative_to(run)): hashlib.sha1(p.read_bytes()).hexdigest() for p in files if p.is_file()}
 

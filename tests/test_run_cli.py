@@ -54,6 +54,10 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     assert np.array_equal(_traj(out / "traj_unsmoothed.txt"), traj)
     online = _traj(out / "traj_online.txt")  # each frame's pose as it was when the frame was done
     assert online.shape == (6, 8) and np.allclose(online[:, 0], traj[:, 0]) and np.allclose(online[0], traj[0])
+    rows = [json.loads(ln) for ln in (out / "frames.jsonl").read_text().splitlines()]  # how each frame was tracked
+    assert [r["frame"] for r in rows] == list(range(6)) and [r["timestamp"] for r in rows] == stamps
+    assert all(r["tracked"].startswith(("first", "motion", "wide", "relocalised")) and r["inliers"] > 0
+               or "lost" in r["events"] or r["tracked"].startswith("lost") for r in rows)  # this clip is tiny: lost
     timing = json.loads((out / "timing.json").read_text())
     assert timing["frames"] == 6 and timing["fps"] > 0 and "track" in timing["median_ms"]
     assert set(timing["smoothing"]) == {"q_m2_s3", "noise_sd_m", "downweighted_frames", "refined_frames"}
@@ -81,6 +85,7 @@ def test_resume_gives_the_same_trajectory(clip, tmp_path):
     assert json.loads((part / "run.json").read_text())["status"] == "completed"
     assert np.allclose(_traj(full / "traj_est.txt"), _traj(part / "traj_est.txt"), atol=1e-6)
     assert np.allclose(_traj(full / "traj_online.txt"), _traj(part / "traj_online.txt"), atol=1e-6)
+    assert (full / "frames.jsonl").read_text() == (part / "frames.jsonl").read_text()  # the rows before the stop kept
 
 
 def test_bad_input_exits_2_with_one_line(clip, tmp_path):

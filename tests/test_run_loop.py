@@ -40,7 +40,8 @@ class TestFrameLoop:
         assert np.array_equal(slam.trajectory(), ref.trajectory()) and len(slam.keyframes) == len(ref.keyframes)
         mesh, dropped = loop.mesh(0.05)  # static mode forgets nothing, in the mesh neither
         assert dropped == 0 and np.array_equal(mesh.vertices, slam.extract_mesh(0.05).vertices)
-        assert loop.state_dict() == {"motion": None, "records": []}
+        state = loop.state_dict()
+        assert state["motion"] is None and state["records"] == [] and [r["frame"] for r in state["frames"]] == [0, 1, 2, 3]
 
 
 def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypatch):
@@ -80,6 +81,14 @@ def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypat
     assert timing["retracked_frames"] == sum(r["retracked"] for r in recs)
     newly_dynamic = any(lab and not pre for r in recs for lab, pre in zip(r["labels"], r["predicted_before"], strict=True))
     assert timing["retracked_frames"] >= 1 or not newly_dynamic
+    rows = [json.loads(ln) for ln in (out / "frames.jsonl").read_text().splitlines()]  # one per frame
+    assert [r["frame"] for r in rows] == list(range(10)) and [r["timestamp"] for r in rows] == stamps
+    assert {r["frame"] for r in rows if r["checked"]} == {int(r[: -len("_depth.png")] in stamps) * stamps.index(
+        r[: -len("_depth.png")]) for r in renders}  # the checked frames are those with a rendered view
+    assert {r["frame"] for r in rows if r["retracked"]} == {r["frame"] for r in recs if r["retracked"]}
+    masked = {p.stem: (np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(p)) > 0).mean()
+              for p in (out / "masks").glob("*.png")}
+    assert all(abs(r["dynamic_pixels"] - masked[r["timestamp"]]) < 1e-5 for r in rows)
     assert isinstance(timing["keyframe_rays_gone"], int) and timing["keyframe_rays_gone"] >= 0
     assert len(departed) == 1 and timing["mesh_vertices_departed"] == departed[0]
     assert _traj(out / "traj_est.txt").shape == (10, 8)
@@ -185,3 +194,19 @@ def test_dynamic_run_maps_with_the_mask_from_before_the_check(walker, tmp_path, 
     assert res.exit_code == 0, res.output
     assert len(before_check) >= 5
     assert all(np.array_equal(mapped[i], m) and m[:, 0].any() for i, m in before_check.items())
+
+
+def test_frames_jsonl_says_how_the_backend_tracked_each_frame(tmp_path_factory, tmp_path):
+    """frames.jsonl on a clip large enough for the backend's keypoints: the first frame starts the map, the
+    others are tracked by the motion model's guess with static inliers, keyframes named where they fell due."""
+    from tiny_runs import render_walker
+
+    walker = render_walker(tmp_path_factory, 320, 240, 5)
+    out = tmp_path / "s"
+    res = CliRunner().invoke(app, ["run", "--seq", str(walker), "--mode", "static", "--out", str(out), "-q"] + TINY)
+    assert res.exit_code == 0, res.output
+    rows = [json.loads(ln) for ln in (out / "frames.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in rows] == list(range(5)) and rows[0]["tracked"] == "first"
+    assert all(r["tracked"].split(";")[0] in ("motion", "wide", "relocalised") and r["inliers"] >= 20 and
+               not r["events"] for r in rows[1:])
+    assert "retracked" not in rows[0] and "dynamic_pixels" not in rows[0]  # static mode: no motion module

@@ -29,7 +29,7 @@ from dynslam_cli.errors import DynslamError
 LOCK_NAME = ".lock"
 # What a run writes (DEVELOPING.md, "Run folder"); the eval commands add EVAL_FILES.
 RUN_FILES = ("run.json", "config.yaml", "checkpoint.pt", "traj_est.txt", "traj_unsmoothed.txt", "traj_online.txt",
-             "mesh.ply", "timing.json", "classifier_updates.jsonl", "tracking_events.json")
+             "mesh.ply", "timing.json", "classifier_updates.jsonl", "tracking_events.json", "frames.jsonl")
 EVAL_FILES = ("ate.json", "ate.png", "ate_online.json", "ate_online.png", "mesh_metrics.json", "mask_metrics.json",
               "montage.png", "recording.rrd", "report.md", "demo_report.json")
 RUN_DIRS = ("masks", "renders")

@@ -67,6 +67,7 @@ class FrameLoop:
             self.mm = MotionModule(cfg, intrinsics, device)
         self.mask_dir = mask_dir if self.mm is not None else None
         self.records: list[dict] = []
+        self.frame_rows: list[dict] = []  # one per processed frame (frames.jsonl)
         self.width = int(intrinsics.width)
         self.still_seconds = float(cfg.run.still_seconds)
         self.still_tolerance = float(cfg.run.still_tolerance)
@@ -92,6 +93,7 @@ class FrameLoop:
         dyn_before = None if inst is None else inst.dynamic.copy()
         tr = self.slam.track(frame, static)
         t_track = tr.ms
+        row = {"frame": self.slam.n_frames - 1, "timestamp": stamp, "tracked": tr.reason, "inliers": tr.inliers}
         t_render = t_judge = t_keyframes = 0.0
         record = None
         retracked = False
@@ -152,6 +154,8 @@ class FrameLoop:
             static = self.mm.bound_outline(inst, frame.depth, tr.pose_c2w, self.slam.keyframes, static, dyn_before)
         n_kf = len(self.slam.keyframes)
         mr = self.slam.map(frame, static, None if inst is None else inst.ids)
+        row["events"] = [e["kind"] for e in self.slam.events if e["frame"] == row["frame"]]
+        self.frame_rows.append(row)
         if inst is None:
             return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,
                     "frame": (time.perf_counter() - t0) * 1e3, "_loss": tr.loss}
@@ -167,6 +171,8 @@ class FrameLoop:
         t_keyframes += (time.perf_counter() - t1) * 1e3
         dyn_mask = inst.dynamic_mask()
         self.last_masks = dyn_mask
+        row.update(retracked=retracked, checked=bool(checked), dynamic_instances=int(inst.dynamic.sum()),
+                   dynamic_pixels=round(float(dyn_mask.mean()), 6))
         if self.mask_dir is not None:
             self._write_png(self.mask_dir / f"{stamp}.png", dyn_mask.astype(np.uint8) * 255)
         tm = inst.timings
@@ -203,10 +209,17 @@ class FrameLoop:
     def write_updates(self, path: Path) -> Path:
         return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records))
 
+    def write_frames(self, path: Path) -> Path:
+        """frames.jsonl: one line per frame, how it was tracked (the backend's reason and static inliers, this
+        frame's tracking events) and, in dynamic mode, whether it was checked and re-tracked and what it masked."""
+        return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.frame_rows))
+
     def state_dict(self) -> dict:
-        return {"motion": None if self.mm is None else self.mm.state_dict(), "records": list(self.records)}
+        return {"motion": None if self.mm is None else self.mm.state_dict(), "records": list(self.records),
+                "frames": list(self.frame_rows)}
 
     def load_state_dict(self, d: dict) -> None:
         if self.mm is not None:
             self.mm.load_state_dict(d["motion"])
         self.records = list(d["records"])
+        self.frame_rows = list(d.get("frames", []))  # a checkpoint from before frames.jsonl: the rows from here on

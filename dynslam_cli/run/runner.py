@@ -271,6 +271,7 @@ class _Run:
                 periodic = cfg.run.checkpoint_every > 0 and done % cfg.run.checkpoint_every == 0 and done < n
                 if periodic or stop:
                     checkpoint.save(self.ckpt, self.slam, done, self.timings, self.identity, self.loop)
+                    self.loop.write_frames(self.out / "frames.jsonl")
                     if self.loop.mm is not None:
                         self.loop.write_updates(self.out / "classifier_updates.jsonl")
                 if stop:
@@ -325,6 +326,7 @@ class _Run:
             timing["peak_gpu_mb"] = torch.cuda.max_memory_allocated(self.device) / 2.0 ** 20
         if smoothing is not None:
             timing["smoothing"] = smoothing
+        paths["frames"] = loop.write_frames(out / "frames.jsonl")
         if loop.mm is not None:
             paths["updates"] = loop.write_updates(out / "classifier_updates.jsonl")
             timing["classifier_updates"] = len(loop.records)

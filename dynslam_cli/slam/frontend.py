@@ -48,7 +48,8 @@ class TrackResult:
     iters: int
     diverged: bool
     ms: float
-    reason: str = ""
+    reason: str = ""  # how the backend tracked it (motion | wide | relocalised | first, "; keyframe (why)")
+    inliers: int = 0  # the backend's static inliers
 
 
 def first_pose(frame) -> np.ndarray:
@@ -115,15 +116,16 @@ class Frontend:
         s.cur = cur
         if s.n_frames == 0:
             pose = first_pose(frame)
+            out = None
             if s.cfg.tracking.backend:
                 s.make_backend(first_pose=pose)
-                self._backend_track(frame, cur)
-            return self._finish(cur, pose, 0.0, 0, False, t0)
+                out = self._backend_track(frame, cur)
+            return self._finish(cur, pose, 0.0, 0, False, t0, *(() if out is None else (out.reason, out.inliers)))
         iters = int(s.cfg.tracking.iters)
         if s.backend is not None:
             out = self._backend_track(frame, cur)
             if not out.lost:
-                return self._finish(cur, out.pose_c2w, float("nan"), 0, False, t0)
+                return self._finish(cur, out.pose_c2w, float("nan"), 0, False, t0, out.reason, out.inliers)
             # lost: dense tracking against the neural map from the constant-velocity pose (if it runs)
             s.event(cur.idx, "lost", out.reason + ("; dense tracking from constant velocity" if iters > 0 else ""))
             init = out.pose_c2w
@@ -214,7 +216,7 @@ class Frontend:
         t0 = time.perf_counter()
         return self.track(frame, s.prepare(frame, mask), t0)
 
-    def _finish(self, cur, pose, loss, iters, diverged, t0, reason="") -> TrackResult:
+    def _finish(self, cur, pose, loss, iters, diverged, t0, reason="", inliers=0) -> TrackResult:
         s = self.s
         ke = s.cfg.mapping.keyframe_every
         self._undo = (self.prev_depth,)
@@ -231,7 +233,7 @@ class Frontend:
         else:
             s.rel.append(None)
         return TrackResult(s.poses[-1].copy(), float(loss), int(iters), bool(diverged),
-                           (time.perf_counter() - t0) * 1000, reason)
+                           (time.perf_counter() - t0) * 1000, reason, int(inliers))
 
     def set_mask(self, cur: CurrentFrame, mask: Optional[np.ndarray]) -> None:
         """The static mask map() trains on (the loop's: the frame's mask from before its check): the
