@@ -48,8 +48,8 @@ class TrackResult:
     iters: int
     diverged: bool
     ms: float
-    reason: str = ""  # how the backend tracked it (motion | wide | relocalised | first, "; keyframe (why)")
-    inliers: int = 0  # the backend's static inliers
+    reason: str = ""  # the backend's: motion | wide | relocalised | first (+ "; keyframe (why)"); dense tracking's failure
+    inliers: int = 0  # the backend's static inliers (0 where dense tracking took over)
 
 
 def first_pose(frame) -> np.ndarray:
