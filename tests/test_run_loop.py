@@ -210,3 +210,12 @@ def test_frames_jsonl_says_how_the_backend_tracked_each_frame(tmp_path_factory, 
     assert all(r["tracked"].split(";")[0] in ("motion", "wide", "relocalised") and r["inliers"] >= 20 and
                not r["events"] for r in rows[1:])
     assert "retracked" not in rows[0] and "dynamic_pixels" not in rows[0]  # static mode: no motion module
+
+
+def test_this_frames_events_reads_only_the_frame_asked():
+    from dynslam_cli.run.loop import this_frames_events
+
+    events = [{"frame": 2, "kind": "lost"}, {"frame": 5, "kind": "guess_rejected"}, {"frame": 5, "kind": "lost"}]
+    assert this_frames_events(events, 5) == ["guess_rejected", "lost"]
+    assert this_frames_events(events, 2) == ["lost"] and this_frames_events(events, 3) == []
+    assert this_frames_events([], 0) == []

@@ -52,6 +52,17 @@ TIMED = ("segment", "encode", "classify", "track", "render", "check", "update", 
          "frame")
 
 
+def this_frames_events(events: list[dict], frame: int) -> list[str]:
+    """The kinds of ``frame``'s events in ``events`` (appended in frame order: read from the end)."""
+    out = []
+    for e in reversed(events):
+        if e["frame"] < frame:
+            break
+        if e["frame"] == frame:
+            out.append(e["kind"])
+    return out[::-1]
+
+
 class FrameLoop:
     """Drives a :class:`~dynslam_cli.slam.system.SLAM` frame by frame, with a
     :class:`~dynslam_cli.motion.module.MotionModule` in dynamic mode (``run.mode``; ``mm`` is None
@@ -154,7 +165,7 @@ class FrameLoop:
             static = self.mm.bound_outline(inst, frame.depth, tr.pose_c2w, self.slam.keyframes, static, dyn_before)
         n_kf = len(self.slam.keyframes)
         mr = self.slam.map(frame, static, None if inst is None else inst.ids)
-        row["events"] = [e["kind"] for e in self.slam.events if e["frame"] == row["frame"]]
+        row["events"] = this_frames_events(self.slam.events, row["frame"])
         self.frame_rows.append(row)
         if inst is None:
             return {**dict.fromkeys(TIMED, 0.0), "track": t_track, "map": 0.0 if mr is None else mr.ms,

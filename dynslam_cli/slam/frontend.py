@@ -116,11 +116,12 @@ class Frontend:
         s.cur = cur
         if s.n_frames == 0:
             pose = first_pose(frame)
-            out = None
+            reason, inliers = "", 0
             if s.cfg.tracking.backend:
                 s.make_backend(first_pose=pose)
                 out = self._backend_track(frame, cur)
-            return self._finish(cur, pose, 0.0, 0, False, t0, *(() if out is None else (out.reason, out.inliers)))
+                reason, inliers = out.reason, out.inliers
+            return self._finish(cur, pose, 0.0, 0, False, t0, reason, inliers)
         iters = int(s.cfg.tracking.iters)
         if s.backend is not None:
             out = self._backend_track(frame, cur)
