@@ -4,7 +4,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dynslam_cli.motion.forget import departed_surface, forget_departed, forget_near, near_ids, refresh_keyframes
+from dynslam_cli.motion.forget import (DepartedPlaces, departed_points, departed_surface, forget_near, near_ids,
+                                      refresh_keyframes)
 from dynslam_cli.motion.types import CheckResult
 from dynslam_cli.slam.keyframes import DEPTH_STRIDE, Keyframe, KeyframeStore
 
@@ -94,28 +95,70 @@ def test_forget_near_gives_what_a_distance_to_every_point_gives():
     assert 0 < sum(int(w.sum()) for w in want) < 1200  # the test holds near and far rays
 
 
-def test_forget_departed_marks_the_rays_on_a_flagged_segment_that_left():
+class TestDepartedPoints:
+    """departed_points: the rendered surface of a flagged segment where the observation lies behind it by t_d."""
+
     # the map rendered (at half resolution) a box at 1 m in segment 1; the camera now sees the wall at 3 m there
-    rendered = np.full((24, 32), 3.0, np.float32)
-    rendered[8:16, 12:20] = 1.0
-    rids = np.zeros((24, 32), np.int32)
-    rids[8:16, 12:20] = 1
-    observed = np.full((48, 64), 3.0, np.float32)
-    res = SimpleNamespace(rendered_ids=rids, rendered_flagged=np.array([1]))
-    kf = _keyframe([[31, 23], [5, 5]], [1.0, 3.0])  # a ray on the box, one on the wall
+    RENDERED = np.full((24, 32), 3.0, np.float32)
+    RENDERED[8:16, 12:20] = 1.0
+    RIDS = np.zeros((24, 32), np.int32)
+    RIDS[8:16, 12:20] = 1
+    OBSERVED = np.full((48, 64), 3.0, np.float32)
 
-    def departed(r=res, radius=0.05, obs=observed):
-        return forget_departed(r, obs, rendered, np.eye(4), [kf], INTR, 0.3, radius)
+    def _res(self, flagged=(1,)):
+        return SimpleNamespace(rendered_ids=self.RIDS, rendered_flagged=np.array(flagged, np.int64))
 
-    assert departed(radius=0.0) == 0 and kf.gone is None  # run.forget_radius 0: off
-    assert departed(r=SimpleNamespace(rendered_ids=rids, rendered_flagged=np.zeros(0, np.int64))) == 0
-    assert departed(r=None) == 0 and departed(obs=np.full((48, 64), 1.2, np.float32)) == 0  # within t_d
-    assert departed() == 1
-    assert kf.gone.tolist() == [True, False] and kf.usable.tolist() == [False, True]
-    # a CheckResult without a rendered segmentation judges nothing
-    empty = CheckResult(observed_moving=np.zeros(0, bool), forward=np.zeros(0, bool), backward=np.zeros(0, bool),
-                        fractions=np.zeros(0, np.float32), background_forward=0.0, background_moving=False)
-    assert departed(r=empty) == 0
+    def test_points_on_the_box_at_its_rendered_depth(self):
+        pts = departed_points(self._res(), self.OBSERVED, self.RENDERED, np.eye(4), INTR, 0.3)
+        assert pts.shape == (64, 3) and np.allclose(pts[:, 2], 1.0)
+        # the box's pixels (12..19, 8..15 at half resolution) seen from the centre of the full-resolution image
+        assert np.all(np.abs(pts[:, 0]) < 0.2) and np.all(np.abs(pts[:, 1]) < 0.2)
+        moved = np.eye(4)
+        moved[:3, 3] = [1.0, 2.0, 3.0]  # world points follow the camera's pose
+        assert np.allclose(departed_points(self._res(), self.OBSERVED, self.RENDERED, moved, INTR, 0.3), pts + [1, 2, 3])
+
+    def test_nothing_without_a_flagged_segment_or_within_t_d(self):
+        none = departed_points(self._res(()), self.OBSERVED, self.RENDERED, np.eye(4), INTR, 0.3)
+        assert none.shape == (0, 3)
+        assert departed_points(None, self.OBSERVED, self.RENDERED, np.eye(4), INTR, 0.3).shape == (0, 3)
+        near = np.full((48, 64), 1.2, np.float32)
+        assert departed_points(self._res(), near, self.RENDERED, np.eye(4), INTR, 0.3).shape == (0, 3)
+        # a CheckResult without a rendered segmentation judges nothing
+        empty = CheckResult(observed_moving=np.zeros(0, bool), forward=np.zeros(0, bool), backward=np.zeros(0, bool),
+                            fractions=np.zeros(0, np.float32), background_forward=0.0, background_moving=False)
+        assert departed_points(empty, self.OBSERVED, self.RENDERED, np.eye(4), INTR, 0.3).shape == (0, 3)
+
+    def test_with_forget_near_the_rays_on_the_box_are_gone(self):
+        kf = _keyframe([[31, 23], [5, 5]], [1.0, 3.0])  # a ray on the box, one on the wall
+        pts = departed_points(self._res(), self.OBSERVED, self.RENDERED, np.eye(4), INTR, 0.3)
+        assert forget_near([kf], pts, INTR, 0.05) == 1
+        assert kf.gone.tolist() == [True, False] and kf.usable.tolist() == [False, True]
+
+
+class TestDepartedPlaces:
+    """DepartedPlaces: the cells where the check saw something leave, asked whether points lie near them."""
+
+    def test_empty_and_near(self):
+        places = DepartedPlaces()
+        assert len(places) == 0 and places.near(np.zeros((3, 3)), 1.0).tolist() == [False] * 3
+        places.add(np.zeros((0, 3)))
+        places.add(np.array([[1.01, 1.01, 1.01], [1.02, 1.03, 1.04]]))  # one cell
+        assert len(places) == 1
+        centre = (np.floor(1.01 / places.CELL) + 0.5) * places.CELL
+        pts = np.array([[centre, centre, centre + 0.29], [centre, centre, centre + 0.31], [5.0, 5.0, 5.0]])
+        assert places.near(pts, 0.3).tolist() == [True, False, False]
+        assert places.near(np.zeros((0, 3)), 0.3).shape == (0,)
+
+    def test_state_round_trip(self):
+        places = DepartedPlaces()
+        places.add(np.array([[0.0, 0.0, 0.0], [-1.0, 2.0, 0.5], [3.0, 3.0, 3.0]]))
+        again = DepartedPlaces()
+        again.load(places.state())
+        assert len(again) == 3 and np.array_equal(again.state(), places.state())
+        pts = np.random.default_rng(0).uniform(-2, 4, (200, 3))
+        assert np.array_equal(again.near(pts, 0.5), places.near(pts, 0.5))
+        again.load(())
+        assert len(again) == 0
 
 
 class TestDepartedSurface:
@@ -158,6 +201,13 @@ class TestDepartedSurface:
         for newest in (self._kf(0.5, frame_id=5), self._kf(0.0, frame_id=5)):  # something in front / no depth
             assert departed_surface(self._on_axis(1.0), [through, newest], self.CAM, 0.1).tolist() == [True]
             assert not departed_surface(self._on_axis(1.0), [newest], self.CAM, 0.1).any()
+
+    def test_a_margin_for_each_point(self):
+        # the wall at 2 m: points 4 and 8 cm in front of it, each with a margin of 5 cm or of 10 cm
+        pts = self._on_axis(1.96, 1.92, 1.96, 1.92)
+        out = departed_surface(pts, [self._kf(2.0)], self.CAM, np.array([0.05, 0.05, 0.10, 0.10]))
+        assert out.tolist() == [False, True, False, False]
+        assert departed_surface(pts, [self._kf(2.0)], self.CAM, 0.05).tolist() == [False, True, False, True]
 
     def test_outside_the_image_is_undecided(self):
         assert not departed_surface(np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), [self._kf(2.0)], self.CAM, 0.1).any()

@@ -44,6 +44,48 @@ class TestFrameLoop:
         assert state["motion"] is None and state["records"] == [] and [r["frame"] for r in state["frames"]] == [0, 1, 2, 3]
 
 
+    def test_the_mesh_is_judged_tighter_near_a_departed_place(self, monkeypatch):
+        import torch
+
+        from dynslam_cli.motion import forget
+        from dynslam_cli.run.loop import FrameLoop
+        from dynslam_cli.slam.system import SLAM
+        from dynslam_cli.slam.toyscene import TinyIntrinsics, ToyFrame, tiny_config, trajectory
+
+        intr = TinyIntrinsics(48, 36, f=20.0)
+        cfg = tiny_config(**{"run.mode": "dynamic", "motion.encoder": "color-hist", "mapping.first_iters": 10,
+                             "tracking.iters": 2, "mapping.iters": 2, "mapping.every": 2, "mapping.keyframe_every": 2})
+        monkeypatch.setattr("dynslam_cli.run.loop.CHECK_WARMUP", 10)  # toy frames are not checked
+        torch.set_num_threads(1)
+        slam = SLAM(cfg, intr, torch.device("cpu"))
+        loop = FrameLoop(cfg, intr, slam, torch.device("cpu"))
+        for f in [ToyFrame(i, p, intr) for i, p in enumerate(trajectory(3, step=0.01))]:
+            loop.process(f, str(f.index))
+        margins = []
+
+        def spy(points, keyframes, intr, margin, **k):
+            margins.append(np.broadcast_to(margin, (len(points),)).copy())
+            return forget.departed_surface(points, keyframes, intr, margin, **k)
+
+        monkeypatch.setattr("dynslam_cli.run.loop.departed_surface", spy)
+        verts = np.asarray(loop.mesh(0.05)[0].vertices)
+        t_d, radius, tr = cfg.motion.depth_threshold, cfg.run.forget_radius, slam.model.truncation
+        assert radius < tr and np.all(margins[0] == tr)  # nothing was seen to leave: the truncation everywhere
+        mesh = slam.extract_mesh(0.05)
+        loop.departed.add(np.asarray(mesh.vertices)[:1])  # something left at the first vertex
+        loop.mesh(0.05)
+        near = np.linalg.norm(np.asarray(mesh.vertices) - (np.floor(mesh.vertices[0] / loop.departed.CELL) + 0.5)
+                              * loop.departed.CELL, axis=1) <= t_d
+        assert near.any() and not near.all() and len(verts) == len(mesh.vertices)
+        assert np.array_equal(margins[1], np.where(near, radius, tr))
+        state = loop.state_dict()
+        again = FrameLoop(cfg, intr, slam, torch.device("cpu"))
+        again.load_state_dict(state)  # the departed places come back with a checkpoint
+        assert np.array_equal(again.departed.state(), loop.departed.state())
+        again.load_state_dict({k: v for k, v in state.items() if k != "departed"})  # one from before them
+        assert len(again.departed) == 0
+
+
 def test_dynamic_run_writes_masks_updates_and_timing(walker, tmp_path, monkeypatch):
     monkeypatch.setattr("dynslam_cli.run.loop.RETRACK_FRACTION", 0.0001)
     from dynslam_cli.motion import forget

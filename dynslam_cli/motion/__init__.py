@@ -13,6 +13,7 @@ Public API (import from the submodules to keep `import dynslam_cli.motion` light
   ``closest_rendered`` -- what of the observation the map can judge
 * ``stayed.stayed_put`` -- instances that stayed put (never labelled moving)
 * ``forget`` -- ``refresh_keyframes`` (re-mask keyframe rays after a classifier update),
-  ``forget_departed`` (keyframe rays on the surface of what the check saw leave)
+  ``departed_points`` with ``forget_near`` (keyframe rays on the surface of what the check saw leave),
+  ``DepartedPlaces`` (where it saw something leave) and ``departed_surface`` (what the mesh leaves out)
 * ``prior.fit_prior`` -- ``dynslam prior fit``
 """

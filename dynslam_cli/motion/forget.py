@@ -4,9 +4,10 @@
   recomputed from the instances now called dynamic (within the mask dilation, :func:`near_ids`),
   and the backend drops the landmarks made on them; reclassified static rays are usable again.
 - ``gone`` (never usable again): rays on the surface of what the backward check saw leave
-  (:func:`forget_departed` with :func:`forget_near`).
+  (:func:`departed_points` with :func:`forget_near`).
 - The exported mesh: surfaces the newest keyframe looking at them saw through
-  (:func:`departed_surface`), where what the map still holds was not seen to leave.
+  (:func:`departed_surface`), where what the map still holds was not seen to leave; near the places
+  where the check saw something leave (:class:`DepartedPlaces`) with a tighter margin.
 """
 
 from __future__ import annotations
@@ -85,15 +86,14 @@ def forget_near(keyframes, points: np.ndarray, intr, radius: float) -> int:
     return newly
 
 
-def forget_departed(res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray, keyframes, intr,
-                    depth_threshold: float, radius: float) -> int:
-    """With ``radius`` (``run.forget_radius``) > 0: the keyframe rays on the surface of what the
-    backward check (``res``, a :class:`~dynslam_cli.motion.types.CheckResult`) saw leave (flagged
-    rendered segments, where the ``observed`` depth lies more than ``depth_threshold`` (t_d) behind
-    the ``rendered`` one) are marked gone, so the map stops replaying a departed object even when
-    the classifier does not recognise its keyframe crops.  Returns the rays newly marked."""
-    if radius <= 0 or res is None or res.rendered_ids is None or not len(res.rendered_flagged):
-        return 0
+def departed_points(res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: np.ndarray, intr,
+                    depth_threshold: float) -> np.ndarray:
+    """(N, 3) world points: the rendered surface of what the backward check (``res``, a
+    :class:`~dynslam_cli.motion.types.CheckResult`) saw leave: the pixels of flagged rendered segments where
+    the ``observed`` depth lies more than ``depth_threshold`` (t_d) behind the ``rendered`` one, at the
+    rendered depth (the check's resolution)."""
+    if res is None or res.rendered_ids is None or not len(res.rendered_flagged):
+        return np.zeros((0, 3))
     import cv2
 
     rids = res.rendered_ids
@@ -102,15 +102,49 @@ def forget_departed(res, observed: np.ndarray, rendered: np.ndarray, pose_c2w: n
     obs = cv2.resize(observed.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
     left = np.isin(rids, res.rendered_flagged) & (ren > 0) & (obs > 0) & (obs - ren > depth_threshold)
     if not left.any():
-        return 0
+        return np.zeros((0, 3))
     sx, sy = w / observed.shape[1], h / observed.shape[0]
     fx, fy, cx, cy = intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5
     vs, us = np.nonzero(left)
-    pw = transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
-    return forget_near(keyframes, pw, intr, radius)
+    return transform(pose_c2w, pixel_dirs(us, vs, fx, fy, cx, cy) * ren[vs, us][:, None])
 
 
-def departed_surface(points: np.ndarray, keyframes, intr, margin: float, reach: int = 1) -> np.ndarray:
+class DepartedPlaces:
+    """Where the backward check saw something leave over a run: the :func:`departed_points`, kept as the
+    cells (``CELL`` m) they fall in, so that the store stays small on long runs."""
+
+    CELL = 0.05
+
+    def __init__(self):
+        self._keys: set[tuple[int, int, int]] = set()
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def add(self, points: np.ndarray) -> None:
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if len(pts):
+            self._keys.update(map(tuple, np.unique(np.floor(pts / self.CELL).astype(np.int64), axis=0).tolist()))
+
+    def near(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """(N,) bool: the ``points`` within ``radius`` (m) of a departed place (of its cell's centre, so up to
+        half a cell's diagonal more)."""
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if not self._keys or not len(pts):
+            return np.zeros(len(pts), bool)
+        from scipy.spatial import cKDTree
+
+        centres = (np.array(sorted(self._keys), np.float64) + 0.5) * self.CELL
+        return np.isfinite(cKDTree(centres).query(pts, distance_upper_bound=radius)[0])
+
+    def state(self) -> np.ndarray:
+        return np.array(sorted(self._keys), np.int64).reshape(-1, 3)
+
+    def load(self, keys) -> None:
+        self._keys = set(map(tuple, np.asarray(keys, np.int64).reshape(-1, 3).tolist()))
+
+
+def departed_surface(points: np.ndarray, keyframes, intr, margin, reach: int = 1) -> np.ndarray:
     """(N,) bool: the world ``points`` (a mesh's vertices) that the newest keyframe deciding about them saw
     through: a departed surface, which the mesh should not show.
 
@@ -120,8 +154,9 @@ def departed_surface(points: np.ndarray, keyframes, intr, margin: float, reach: 
     and around the pixel (``reach`` cells of the subsampled map on every side) that all lie more than
     ``margin`` behind it say the keyframe saw through it (departed); otherwise something stood in front
     or nothing was read, and older keyframes decide.  Points no keyframe decides are kept: only the
-    newest observation of a place overrules the map."""
+    newest observation of a place overrules the map.  ``margin``: one for all points, or one each (N,)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
+    margins = np.broadcast_to(np.asarray(margin, np.float64), (len(pts),))
     departed = np.zeros(len(pts), bool)
     todo = np.arange(len(pts))
     W, H = int(intr.width), int(intr.height)
@@ -135,14 +170,15 @@ def departed_surface(points: np.ndarray, keyframes, intr, margin: float, reach: 
         pc, u, v, inside = project_into(pts[todo], kf.pose_c2w, intr, W, H)
         iv, iu = depth_cell(np.where(inside, u, 0), np.where(inside, v, 0), small.shape)
         z = pc[:, 2]
+        m = margins[todo]
         d = np.where(valid, small, 0.0)[iv, iu]
-        there = inside & (d > 0) & (np.abs(d - z) <= margin)
+        there = inside & (d > 0) & (np.abs(d - z) <= m)
         pad = np.pad(np.where(valid, small, np.inf), reach, constant_values=np.inf)
         nearest = np.full(len(todo), np.inf, np.float32)
         for dy in range(2 * reach + 1):
             for dx in range(2 * reach + 1):
                 nearest = np.minimum(nearest, pad[iv + dy, iu + dx])
-        through = inside & ~there & np.isfinite(nearest) & (nearest - z > margin)
+        through = inside & ~there & np.isfinite(nearest) & (nearest - z > m)
         departed[todo[through]] = True
         todo = todo[~(there | through)]
     return departed

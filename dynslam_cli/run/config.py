@@ -29,5 +29,6 @@ class RunConfig:
     forget_radius: float = opt(0.05, "Dynamic mode: keyframe rays within this distance (m) of the surface of something "
                                "the backward check saw leave are forgotten for good (a departed object the classifier "
                                "does not recognise in its keyframe crops), and the mesh leaves out surfaces the newest "
-                               "keyframe looking at them saw through; 0 = off (the paper forgets through the "
-                               "classifier only).", min=0)
+                               "keyframe looking at them saw through (by more than this distance near where the "
+                               "check saw something leave, else by the truncation); 0 = off (the paper forgets "
+                               "through the classifier only).", min=0)

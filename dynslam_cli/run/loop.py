@@ -26,7 +26,8 @@ import numpy as np
 
 from dynslam_cli.motion.checkable import checkable_depth, closest_rendered
 from dynslam_cli.map.mesh import drop_vertices
-from dynslam_cli.motion.forget import departed_surface, forget_departed, near_ids, refresh_keyframes
+from dynslam_cli.motion.forget import (DepartedPlaces, departed_points, departed_surface, forget_near, near_ids,
+                                      refresh_keyframes)
 from dynslam_cli.motion.reprojection import moving_by_reprojection
 from dynslam_cli.motion.stayed import stayed_put, window_frames
 from dynslam_cli.slam.frontend import first_pose
@@ -83,6 +84,7 @@ class FrameLoop:
         self.still_seconds = float(cfg.run.still_seconds)
         self.still_tolerance = float(cfg.run.still_tolerance)
         self.forget_radius = float(cfg.run.forget_radius)
+        self.departed = DepartedPlaces()  # where the check saw something leave (the mesh's departed surfaces)
         self.last_masks: Optional[np.ndarray] = None  # the last frame's dynamic mask (for callers)
 
     # ------------------------------------------------------------------ per frame
@@ -132,8 +134,11 @@ class FrameLoop:
             t_judge = (time.perf_counter() - t1) * 1e3
             record = self.mm.check_and_update(judged, inst, tr.pose_c2w, r_depth, r_rgb, forward_ok, still, moved)
             t1 = time.perf_counter()
-            forget_departed(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w, self.slam.keyframes,
-                            self.slam.intr, self.mm.m.depth_threshold, self.forget_radius)
+            if self.forget_radius > 0:
+                left = departed_points(getattr(inst, "check", None), judged.depth, raw_depth, tr.pose_c2w,
+                                       self.slam.intr, self.mm.m.depth_threshold)
+                forget_near(self.slam.keyframes, left, self.slam.intr, self.forget_radius)
+                self.departed.add(left)
             t_judge += (time.perf_counter() - t1) * 1e3
             if record is not None and RETRACK_FRACTION > 0:
                 valid = np.asarray(frame.depth) > 0
@@ -200,12 +205,16 @@ class FrameLoop:
     def mesh(self, voxel: float):
         """The map's mesh at ``voxel`` size and how many of its vertices were left out: in dynamic mode with
         departed surfaces forgotten (``run.forget_radius`` > 0), the surfaces the newest keyframe looking at them
-        saw through by more than the map's truncation (:func:`~dynslam_cli.motion.forget.departed_surface`)."""
+        saw through (:func:`~dynslam_cli.motion.forget.departed_surface`) by more than the map's truncation, or,
+        within the check's threshold t_d of a place where the check saw something leave (below t_d it cannot
+        see a departure), by more than ``run.forget_radius``."""
         mesh = self.slam.extract_mesh(voxel)
         if self.mm is None or self.forget_radius <= 0 or not len(mesh.vertices):
             return mesh, 0
-        drop = departed_surface(np.asarray(mesh.vertices), self.slam.keyframes, self.slam.intr,
-                                self.slam.model.truncation)
+        verts = np.asarray(mesh.vertices)
+        margin = np.where(self.departed.near(verts, self.mm.m.depth_threshold), self.forget_radius,
+                          self.slam.model.truncation)
+        drop = departed_surface(verts, self.slam.keyframes, self.slam.intr, margin)
         return drop_vertices(mesh, drop), int(drop.sum())
 
     @staticmethod
@@ -227,10 +236,11 @@ class FrameLoop:
 
     def state_dict(self) -> dict:
         return {"motion": None if self.mm is None else self.mm.state_dict(), "records": list(self.records),
-                "frames": list(self.frame_rows)}
+                "frames": list(self.frame_rows), "departed": self.departed.state()}
 
     def load_state_dict(self, d: dict) -> None:
         if self.mm is not None:
             self.mm.load_state_dict(d["motion"])
         self.records = list(d["records"])
         self.frame_rows = list(d.get("frames", []))  # a checkpoint from before frames.jsonl: the rows from here on
+        self.departed.load(d.get("departed", ()))  # from before the departed places: those from here on
