@@ -207,13 +207,13 @@ class FrameLoop:
         departed surfaces forgotten (``run.forget_radius`` > 0), the surfaces the newest keyframe looking at them
         saw through (:func:`~dynslam_cli.motion.forget.departed_surface`) by more than the map's truncation, or,
         within the check's threshold t_d of a place where the check saw something leave (below t_d it cannot
-        see a departure), by more than ``run.forget_radius``."""
+        see a departure), by more than ``run.forget_radius`` (at most the truncation)."""
         mesh = self.slam.extract_mesh(voxel)
         if self.mm is None or self.forget_radius <= 0 or not len(mesh.vertices):
             return mesh, 0
         verts = np.asarray(mesh.vertices)
-        margin = np.where(self.departed.near(verts, self.mm.m.depth_threshold), self.forget_radius,
-                          self.slam.model.truncation)
+        tr = self.slam.model.truncation
+        margin = np.where(self.departed.near(verts, self.mm.m.depth_threshold), min(self.forget_radius, tr), tr)
         drop = departed_surface(verts, self.slam.keyframes, self.slam.intr, margin)
         return drop_vertices(mesh, drop), int(drop.sum())
 
