@@ -120,3 +120,13 @@ class TestProcStatus:
 
         monkeypatch.setattr("builtins.open", no_file)
         assert io.proc_status("VmHWM") is None
+
+
+def test_write_jsonl_atomic_writes_one_line_per_row(tmp_path: Path):
+    import json
+
+    rows = [{"frame": 0, "events": []}, {"frame": 1, "events": ["lost"]}]
+    out = io.write_jsonl_atomic(tmp_path / "f.jsonl", rows)
+    assert out == tmp_path / "f.jsonl"
+    assert [json.loads(ln) for ln in out.read_text().splitlines()] == rows
+    assert io.write_jsonl_atomic(tmp_path / "empty.jsonl", []).read_text() == ""

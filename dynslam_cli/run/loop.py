@@ -17,7 +17,6 @@ every pixel is static, nothing is checked or forgotten.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 from typing import Optional
@@ -31,7 +30,7 @@ from dynslam_cli.motion.forget import (DepartedPlaces, departed_points, departed
 from dynslam_cli.motion.reprojection import moving_by_reprojection
 from dynslam_cli.motion.stayed import stayed_put, window_frames
 from dynslam_cli.slam.frontend import first_pose
-from dynslam_cli.utils.io import atomic_path, write_text_atomic
+from dynslam_cli.utils.io import atomic_path, write_jsonl_atomic
 
 # A pixel is inconsistent only when no rendered depth within this many pixels (at check resolution) agrees with the
 # observation.
@@ -227,12 +226,12 @@ class FrameLoop:
                 raise OSError(f"cannot write {path}")
 
     def write_updates(self, path: Path) -> Path:
-        return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records))
+        return write_jsonl_atomic(path, self.records)
 
     def write_frames(self, path: Path) -> Path:
         """frames.jsonl: one line per frame, how it was tracked (the backend's reason and static inliers, this
         frame's tracking events) and, in dynamic mode, whether it was checked and re-tracked and what it masked."""
-        return write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in self.frame_rows))
+        return write_jsonl_atomic(path, self.frame_rows)
 
     def state_dict(self) -> dict:
         return {"motion": None if self.mm is None else self.mm.state_dict(), "records": list(self.records),

@@ -109,3 +109,8 @@ def write_text_atomic(target: str | os.PathLike, text: str) -> Path:
 
 def write_json_atomic(target: str | os.PathLike, obj: Any, indent: int = 2) -> Path:
     return write_text_atomic(target, json.dumps(obj, indent=indent, sort_keys=False) + "\n")
+
+
+def write_jsonl_atomic(target: str | os.PathLike, rows) -> Path:
+    """One JSON line per item of ``rows`` (JSON Lines)."""
+    return write_text_atomic(target, "".join(json.dumps(r) + "\n" for r in rows))
