@@ -68,6 +68,9 @@ def run_case(spec: str, mode: str, out: Path, sets: list[str], fresh: bool) -> d
     row["fps_after_first"] = timing.get("fps_after_first", float("nan"))
     row["updates"] = timing.get("classifier_updates", "—")
     row["median_ms"] = timing["median_ms"]
+    # CPU time of every thread per frame, and over the mean frame's wall time: how many cores the run kept busy
+    row["cpu_ms"] = timing.get("cpu_ms_per_frame", float("nan"))
+    row["cores"] = row["cpu_ms"] / max(timing["mean_ms"].get("frame", float("nan")), 1e-9)
     row["iou"] = "—"
     if mode.startswith("dynamic") and spec.startswith("synth/"):
         m = evaluate_run_masks(out)
@@ -79,7 +82,7 @@ def aggregate(rounds: list[dict]) -> dict:
     """One case and mode over repeated rounds (``run_case`` rows): medians of the speed figures, the
     first round's accuracy, and the ATE's range over the rounds."""
     first = dict(rounds[0])
-    for k in ("fps", "fps_after_first"):
+    for k in ("fps", "fps_after_first", "cpu_ms", "cores"):
         first[k] = statistics.median(r[k] for r in rounds)
     comps = set().union(*(r["median_ms"] for r in rounds))
     first["median_ms"] = {c: statistics.median(r["median_ms"].get(c, 0.0) for r in rounds) for c in sorted(comps)}
@@ -151,15 +154,16 @@ def main() -> None:
     comps = ["segment", "encode", "track", "render", "check", "update", "judge", "keyframes", "map", "wait", "frame"]
     if a.repeats > 1:
         print(f"speed: medians over {a.repeats} rounds; ATE: the first round's (range where rounds differ)")
-    print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | " + " | ".join(comps) + " |")
-    print("|---" * (8 + len(comps)) + "|")
+    print("| case | mode | ATE cm | still cm | mask IoU | updates | fps | fps after f0 | CPU ms a frame | cores busy | "
+          + " | ".join(comps) + " |")
+    print("|---" * (10 + len(comps)) + "|")
     for r in rows:
         iou = f"{r['iou']:.3f}" if isinstance(r["iou"], float) else "—"
         ms = " | ".join(f"{r['median_ms'].get(c, float('nan')):.0f}" if c in r["median_ms"] else "—" for c in comps)
         lo, hi = r["ate_range_cm"]
         ate = f"{r['ate_cm']:.2f}" + (f" ({lo:.2f}–{hi:.2f})" if hi - lo >= 0.005 else "")
         print(f"| {r['case']} | {r['mode']} | {ate} | {r['still_cm']:.2f} | {iou} | {r['updates']} | "
-              f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {ms} |")
+              f"{r['fps']:.2f} | {r['fps_after_first']:.2f} | {r['cpu_ms']:.0f} | {r['cores']:.2f} | {ms} |")
     # the overhead of each dynamic variant over static mode on the same case (median frame; overall time per frame)
     static = {r["case"]: r for r in rows if r["mode"] == "static"}
     for r in rows:
@@ -170,7 +174,7 @@ def main() -> None:
             each = f" (per round x{', x'.join(f'{v:.2f}' for v in per_round)})" if len(per_round) > 1 else ""
             print(f"overhead of {r['mode']} over static on {r['case']}: median frame {d:.0f} vs {s0:.0f} ms "
                   f"(x{d / max(s0, 1e-9):.2f}); overall time per frame x{st['fps'] / max(r['fps'], 1e-9):.2f}{each}; "
-                  f"fps {r['fps']:.2f} vs {st['fps']:.2f}")
+                  f"fps {r['fps']:.2f} vs {st['fps']:.2f}; CPU per frame x{r['cpu_ms'] / max(st['cpu_ms'], 1e-9):.2f}")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ B = benchmark_scripts.load("bench_dynamic")
 
 def _row(mode, fps, frame_ms, ate=1.0):
     return {"case": "c", "mode": mode, "ate_cm": ate, "still_cm": 9.0, "fps": fps, "fps_after_first": fps + 0.1,
-            "updates": 3, "iou": "—", "median_ms": {"frame": frame_ms, "map": frame_ms / 2}}
+            "updates": 3, "iou": "—", "median_ms": {"frame": frame_ms, "map": frame_ms / 2},
+            "cpu_ms": 1.5 * frame_ms, "cores": 1.5}
 
 
 class TestAggregate:
@@ -17,6 +18,7 @@ class TestAggregate:
         agg = B.aggregate([_row("dynamic", 1.0, 700), _row("dynamic", 1.5, 600, ate=1.2), _row("dynamic", 1.2, 900)])
         assert agg["fps"] == 1.2 and agg["fps_after_first"] == pytest.approx(1.3)
         assert agg["median_ms"] == {"frame": 700, "map": 350}
+        assert agg["cpu_ms"] == 1050 and agg["cores"] == 1.5  # medians too
         assert agg["ate_cm"] == 1.0 and agg["ate_range_cm"] == (1.0, 1.2) and agg["rounds"] == 3
 
     def test_one_round_is_that_round(self):

@@ -65,6 +65,7 @@ def test_run_writes_the_run_folder(clip, tmp_path):
     # calls: frames each part ran on (tracking every frame; mapping on frame 0 and every keyframe_every-th)
     assert timing["calls"]["track"] == 6 and timing["calls"]["frame"] == 6 and 1 <= timing["calls"]["map"] < 6
     assert isinstance(timing["peak_rss_mb"], float) and 0 < rss_before <= timing["peak_rss_mb"] <= _proc_status_mb("VmHWM")
+    assert timing["cpu_ms_per_frame"] > 0  # every thread's CPU time while the frames ran
     assert (out / "mesh.ply").read_bytes()[:3] == b"ply" and b"binary" in (out / "mesh.ply").read_bytes()[:200]
     assert not (out / "checkpoint.pt").exists()
 

@@ -1,9 +1,12 @@
 """run/environment.py: what a run records about the machine and libraries it ran on."""
 
+import os
+import time
+
 import numpy as np
 import torch
 
-from dynslam_cli.run.environment import LIBRARIES, cpu_model, peak_rss_mb, versions
+from dynslam_cli.run.environment import LIBRARIES, cpu_model, cpu_seconds, peak_rss_mb, versions
 
 
 class TestVersions:
@@ -13,6 +16,23 @@ class TestVersions:
         assert v["cpu"] == cpu_model() and "gpu" not in v and "cuda" not in v
         assert set(LIBRARIES) <= set(v)  # every dependency of the package is installed here
         assert v["numba_threading_layer"]
+        assert v["omp_wait_policy"] == os.environ.get("OMP_WAIT_POLICY", "")
+
+
+class TestCpuSeconds:
+    def test_counts_every_threads_work(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        def spin(s=0.3):
+            t = time.perf_counter()
+            while time.perf_counter() - t < s:
+                pass
+
+        c0, w0 = cpu_seconds(), time.perf_counter()
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(spin, [0.3, 0.3]))
+        used, wall = cpu_seconds() - c0, time.perf_counter() - w0
+        assert 0.25 <= used <= 2 * wall + 0.05  # at least one spinner's time, at most two cores' (GIL: about one)
 
 
 class TestPeakRss:

@@ -46,3 +46,29 @@ class TestSetThreads:
             assert set_threads(1) == 1 and torch.get_num_threads() == 1
         finally:
             set_threads(before)  # torch's and numba's
+
+
+class TestPassiveOpenmp:
+    @staticmethod
+    def _policy(env_policy):
+        import os
+
+        env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+        if env_policy is not None:
+            env["OMP_WAIT_POLICY"] = env_policy
+        # importing the package sets the policy before anything imports torch (libgomp reads it when it loads)
+        code = "import os, dynslam_cli, torch\nprint(os.environ['OMP_WAIT_POLICY'])\n"
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                              env=env).stdout.strip()
+
+    def test_passive_unless_the_user_set_one(self):
+        assert self._policy(None) == "PASSIVE"
+        assert self._policy("ACTIVE") == "ACTIVE"
+
+    def test_returns_the_policy_in_force(self, monkeypatch):
+        from dynslam_cli.utils.threads import passive_openmp
+
+        monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+        assert passive_openmp() == "PASSIVE"
+        monkeypatch.setenv("OMP_WAIT_POLICY", "active")
+        assert passive_openmp() == "active"

@@ -5,6 +5,7 @@ GPUs: README, "Reproducibility"), and the process's peak resident memory."""
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import platform
 import resource
 import sys
@@ -42,6 +43,8 @@ def versions(device=None) -> dict:
             except importlib.metadata.PackageNotFoundError:
                 continue
     out["cpu"] = cpu_model()
+    # how torch's OpenMP threads wait between parallel regions (utils/threads.passive_openmp): speed, not results
+    out["omp_wait_policy"] = os.environ.get("OMP_WAIT_POLICY", "")
     if device is not None and device.type == "cuda":
         out["gpu"] = torch.cuda.get_device_name(device)
         out["cuda"] = torch.version.cuda
@@ -64,6 +67,12 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown"
+
+
+def cpu_seconds() -> float:
+    """The process's CPU time so far (s): user + system, every thread's."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def peak_rss_mb() -> float:

@@ -29,7 +29,7 @@ import numpy as np
 from dynslam_cli.errors import DynslamError
 from dynslam_cli.run import checkpoint
 from dynslam_cli.run.ahead import ReadAhead
-from dynslam_cli.run.environment import peak_rss_mb, versions
+from dynslam_cli.run.environment import cpu_seconds, peak_rss_mb, versions
 from dynslam_cli.run.folder import FolderLock, claim_folder, read_status
 from dynslam_cli.utils.io import atomic_path, write_json_atomic, write_text_atomic
 from dynslam_cli.utils.threads import seed_everything, set_threads
@@ -157,6 +157,7 @@ class _Run:
         self.slam = self.loop = self.bar = None
         self.stop_after = 0
         self.timings: dict = {}
+        self.cpu = [0.0, 0]  # CPU seconds (every thread) and frames, over the frames this process ran
 
     def execute(self, state: Optional[dict]) -> RunResult:
         from dynslam_cli.config.loader import save_config
@@ -248,9 +249,19 @@ class _Run:
         # Bonn clip, dynamic mode: 3 % faster on 2 CPU cores, 31 % after the first frame on a GPU; docs/experiments.md)
         work = self.loop.perceive if self.loop.mm is not None and self.threads >= 2 else None
         ahead = ReadAhead(self.seq, start, n, work)
+        c0 = cpu_seconds()
+        try:
+            return self._run_frames(ahead, start, n)
+        finally:
+            self.cpu[0] += cpu_seconds() - c0  # the read-ahead thread's too
+
+    def _run_frames(self, ahead: ReadAhead, start: int, n: int) -> int:
+        """:meth:`_frames`' loop over what ``ahead`` reads (and perceives)."""
+        cfg = self.cfg
         with closing(iter(ahead)) as frames:
             for i, frame, seen in frames:
                 step = self.loop.process(frame, self.seq.stamps[i], seen)
+                self.cpu[1] += 1
                 step["wait"] = ahead.waited_ms  # reading / perceiving this frame that the last did not hide
                 step["frame"] += ahead.waited_ms
                 for k in self.timings:
@@ -319,6 +330,9 @@ class _Run:
             "mean_ms": {k: float(np.mean(v)) if len(v) else 0.0 for k, v in self.timings.items()},
             "calls": {k: int(sum(1 for x in v if x > 0)) for k, v in self.timings.items()},  # frames each part ran on
             "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
+            # CPU time of every thread while the frames ran (this process's frames; frame 0 included): on a machine
+            # with spare cores it says how much of them the run used (cpu_ms_per_frame / mean frame ms = cores busy)
+            "cpu_ms_per_frame": 1e3 * self.cpu[0] / self.cpu[1] if self.cpu[1] else 0.0,
         }
         if self.device.type == "cuda":  # what torch's allocator held at most on the GPU
             import torch

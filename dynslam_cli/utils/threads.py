@@ -1,4 +1,4 @@
-"""Numba's thread pool: which threading layer the parallel kernels use.
+"""Numba's thread pool: which threading layer the parallel kernels use; how torch's OpenMP threads wait.
 
 Numba picks OpenMP where it can; at one thread on an idle machine it is the faster layer.  OpenMP worker
 threads spin-wait between parallel regions, though, and dynslam launches thousands of short regions
@@ -13,6 +13,14 @@ the Bonn clip in dynamic mode 0.59 against 0.88, ``make demo`` 0.73 against 0.66
 selects ``workqueue`` for its behaviour under load; ``NUMBA_THREADING_LAYER`` set by the user wins.
 ``workqueue`` must not launch kernels from several Python threads at once (numba aborts then);
 dynslam's own parallelism uses processes.
+
+Torch's own OpenMP threads (GNU libgomp: torch's and MKL's parallel regions) spin the same way after each region,
+and a run alternates them with numba's kernels thousands of times a frame, while the read-ahead thread
+(``run/ahead.py``) encodes beside the loop.  :func:`passive_openmp` (called when ``dynslam_cli`` is imported, before
+torch is: libgomp reads the setting once, when it loads) makes them sleep instead unless the user set
+``OMP_WAIT_POLICY``.  Bonn clip, 2 threads, idle, alternating (docs/experiments.md, "OpenMP threads that sleep"):
+the same bits, static and dynamic mode both faster.  A program that imports torch before dynslam keeps libgomp's
+default; set ``OMP_WAIT_POLICY=PASSIVE`` in its environment then.
 
 Determinism: with the same seed, thread count and machine a run is bit-for-bit repeatable
 (tests/test_determinism.py).  :func:`seed_everything` switches torch to its deterministic
@@ -31,6 +39,12 @@ from typing import Optional
 import numpy as np
 
 SHARED_LAYER = "workqueue"
+
+
+def passive_openmp() -> str:
+    """``OMP_WAIT_POLICY=PASSIVE`` unless the environment sets it (it takes effect only before torch is
+    first imported); returns the policy in force from then on."""
+    return os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def choose_numba_layer() -> Optional[str]:
