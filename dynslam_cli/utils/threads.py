@@ -36,8 +36,6 @@ import os
 import random
 from typing import Optional
 
-import numpy as np
-
 SHARED_LAYER = "workqueue"
 
 
@@ -81,6 +79,7 @@ def deterministic_torch() -> None:
 
 def seed_everything(seed: int) -> None:
     """Seed Python's, numpy's and torch's global generators and make torch deterministic."""
+    import numpy as np  # here, not at the top: `import dynslam_cli` imports this module and must stay light
     import torch
 
     random.seed(seed)
