@@ -157,7 +157,7 @@ class _Run:
         self.slam = self.loop = self.bar = None
         self.stop_after = 0
         self.timings: dict = {}
-        self.cpu = [0.0, 0]  # CPU seconds (every thread) and frames, over the frames this process ran
+        self.cpu_ms_per_frame = 0.0  # every thread's CPU time over the frames this process ran
 
     def execute(self, state: Optional[dict]) -> RunResult:
         from dynslam_cli.config.loader import save_config
@@ -250,10 +250,10 @@ class _Run:
         work = self.loop.perceive if self.loop.mm is not None and self.threads >= 2 else None
         ahead = ReadAhead(self.seq, start, n, work)
         c0 = cpu_seconds()
-        try:
-            return self._run_frames(ahead, start, n)
-        finally:
-            self.cpu[0] += cpu_seconds() - c0  # the read-ahead thread's too
+        done = self._run_frames(ahead, start, n)
+        if done > start:  # the read-ahead thread's CPU time too
+            self.cpu_ms_per_frame = 1e3 * (cpu_seconds() - c0) / (done - start)
+        return done
 
     def _run_frames(self, ahead: ReadAhead, start: int, n: int) -> int:
         """:meth:`_frames`' loop over what ``ahead`` reads (and perceives)."""
@@ -261,7 +261,6 @@ class _Run:
         with closing(iter(ahead)) as frames:
             for i, frame, seen in frames:
                 step = self.loop.process(frame, self.seq.stamps[i], seen)
-                self.cpu[1] += 1
                 step["wait"] = ahead.waited_ms  # reading / perceiving this frame that the last did not hide
                 step["frame"] += ahead.waited_ms
                 for k in self.timings:
@@ -332,7 +331,7 @@ class _Run:
             "peak_rss_mb": peak_rss_mb(),  # the process's peak so far: frames, final BA and mesh included
             # CPU time of every thread while the frames ran (this process's frames; frame 0 included): on a machine
             # with spare cores it says how much of them the run used (cpu_ms_per_frame / mean frame ms = cores busy)
-            "cpu_ms_per_frame": 1e3 * self.cpu[0] / self.cpu[1] if self.cpu[1] else 0.0,
+            "cpu_ms_per_frame": self.cpu_ms_per_frame,
         }
         if self.device.type == "cuda":  # what torch's allocator held at most on the GPU
             import torch
